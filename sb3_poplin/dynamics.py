@@ -1,0 +1,313 @@
+"""
+The learned dynamics: a probabilistic ensemble (PE) of Gaussian MLPs, after PETS (Chua et al. 2018).
+
+This module owns the ensemble's parameters, its input/target normalisation, fitting on a batch of
+transitions, and propagation of imagined states during planning. All members live in one module
+with weights ``[E, in, out]``: a forward pass is one batched matmul per layer, whatever E is.
+
+Model input: the observation without ``input_exclude`` indices (e.g. the x position), concatenated
+with the action scaled to [-1, 1], standardised with statistics refit on all data before each fit.
+Model target: the observation delta ``next_obs - obs`` (all indices, excluded ones included) and,
+with ``learned_reward``, the reward; targets are standardised per dimension as well, so the learned
+log-variance bounds act in standardised units.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch as th
+import torch.nn.functional as F
+from torch import nn
+
+PROPAGATIONS = ("expectation", "ts1", "tsinf", "ds")
+
+
+def default_weight_decays(num_hidden: int) -> list[float]:
+    """
+    Per-layer L2 coefficients of the PETS/POPLIN code for ``num_hidden`` hidden layers plus the
+    output layer: 2.5e-5, 5e-5, then 7.5e-5 for the remaining hidden layers, and 1e-4 on the output.
+    """
+    hidden = [2.5e-5, 5e-5] + [7.5e-5] * max(num_hidden - 2, 0)
+    return [*hidden[:num_hidden], 1e-4]
+
+
+class EnsembleLinear(nn.Module):
+    """
+    ``E`` independent linear layers applied as one batched matmul.
+
+    :param ensemble_size: number of members E
+    :param in_features: input width
+    :param out_features: output width
+    """
+
+    def __init__(self, ensemble_size: int, in_features: int, out_features: int) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(th.empty(ensemble_size, in_features, out_features))
+        self.bias = nn.Parameter(th.zeros(ensemble_size, 1, out_features))
+        # truncated normal, std 1 / (2 sqrt(fan_in)), as in the PETS code
+        std = 1.0 / (2.0 * math.sqrt(in_features))
+        nn.init.trunc_normal_(self.weight, std=std, a=-2 * std, b=2 * std)
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        """:param x: ``[E, B, in]`` -> ``[E, B, out]``"""
+        return th.baddbmm(self.bias, x, self.weight)
+
+
+class FitResult(NamedTuple):
+    """Summary of one call to :meth:`ProbabilisticEnsemble.fit`."""
+
+    loss: float  # mean training loss of the last epoch (NLL + penalties)
+    train_mse: float  # mean squared error of the member means on the training data, env units
+    holdout_mse: float  # same on the holdout split (nan without holdout)
+    epochs: int  # epochs actually run (fewer with early stopping)
+
+
+class ProbabilisticEnsemble(nn.Module):
+    """
+    Ensemble of Gaussian MLPs predicting the next-observation delta (and optionally the reward).
+
+    :param obs_dim: observation size
+    :param action_dim: action size
+    :param ensemble_size: number of members E
+    :param hidden_sizes: hidden layer widths (swish activations)
+    :param input_exclude: observation indices not fed to the network (their delta is still predicted)
+    :param learned_reward: also predict the reward (one extra output)
+    :param weight_decays: L2 coefficient per layer (hidden layers then output); ``None`` gives
+        :func:`default_weight_decays`
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        action_dim: int,
+        ensemble_size: int = 5,
+        hidden_sizes: Sequence[int] = (200, 200, 200, 200),
+        input_exclude: Sequence[int] = (),
+        learned_reward: bool = False,
+        weight_decays: Sequence[float] | None = None,
+    ) -> None:
+        super().__init__()
+        if ensemble_size < 1:
+            raise ValueError(f"ensemble_size must be >= 1, got {ensemble_size}")
+        self.obs_dim = obs_dim
+        self.action_dim = action_dim
+        self.ensemble_size = ensemble_size
+        self.learned_reward = learned_reward
+        kept = [i for i in range(obs_dim) if i not in set(input_exclude)]
+        self.register_buffer("obs_index", th.tensor(kept, dtype=th.long), persistent=False)
+        self.in_dim = len(kept) + action_dim
+        self.out_dim = obs_dim + int(learned_reward)
+
+        sizes = [self.in_dim, *hidden_sizes]
+        self.hidden = nn.ModuleList(EnsembleLinear(ensemble_size, a, b) for a, b in zip(sizes[:-1], sizes[1:]))
+        self.output = EnsembleLinear(ensemble_size, sizes[-1], 2 * self.out_dim)
+        decays = default_weight_decays(len(hidden_sizes)) if weight_decays is None else list(weight_decays)
+        if len(decays) != len(hidden_sizes) + 1:
+            raise ValueError(
+                f"weight_decays needs one value per layer ({len(hidden_sizes) + 1}: hidden layers then output), "
+                f"got {len(decays)}"
+            )
+        self.weight_decays = decays
+        # learned soft bounds on the log-variance (PETS), penalised by 0.01 * (sum max - sum min)
+        self.max_logvar = nn.Parameter(th.full((1, 1, self.out_dim), 0.5))
+        self.min_logvar = nn.Parameter(th.full((1, 1, self.out_dim), -10.0))
+        # normalisers (saved with the model)
+        self.register_buffer("input_mean", th.zeros(self.in_dim))
+        self.register_buffer("input_std", th.ones(self.in_dim))
+        self.register_buffer("target_mean", th.zeros(self.out_dim))
+        self.register_buffer("target_std", th.ones(self.out_dim))
+
+    # ------------------------------------------------------------------ forward
+    def model_input(self, obs: th.Tensor, action: th.Tensor) -> th.Tensor:
+        """Standardised network input from raw observations ``[..., o]`` and scaled actions ``[..., a]``."""
+        x = th.cat([obs.index_select(-1, self.obs_index), action], dim=-1)
+        return (x - self.input_mean) / self.input_std
+
+    def forward(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """
+        :param x: standardised input ``[E, B, in]``
+        :return: mean and bounded log-variance of the standardised target, each ``[E, B, out]``
+        """
+        for layer in self.hidden:
+            x = F.silu(layer(x))
+        mean, logvar = self.output(x).chunk(2, dim=-1)
+        logvar = self.max_logvar - F.softplus(self.max_logvar - logvar)
+        logvar = self.min_logvar + F.softplus(logvar - self.min_logvar)
+        return mean, logvar
+
+    def _to_delta(self, normalised: th.Tensor) -> th.Tensor:
+        return normalised * self.target_std + self.target_mean
+
+    # ------------------------------------------------------------------ propagation
+    def propagate(
+        self,
+        states: th.Tensor,
+        actions: th.Tensor,
+        propagation: str,
+        generator: th.Generator | None = None,
+    ) -> tuple[th.Tensor, th.Tensor | None]:
+        """
+        One imagined step for a batch of candidates, each with ``P`` particles.
+
+        - ``expectation``: P must be 1; every candidate goes through all E members and the next
+          state is the mean of the members' means (no sampling): ``[N, E]`` rows, not ``[N, P, E]``.
+        - ``tsinf``: particle p of every candidate always uses member ``p // (P / E)``, so the
+          particles of a candidate are spread evenly over the members; next states are sampled.
+        - ``ts1``: like ``tsinf`` but the particle-to-member assignment is redrawn at every step
+          (a random permutation per candidate, still P / E particles per member).
+        - ``ds``: ``ts1``, then the candidate's particles are replaced by samples from a Gaussian
+          fitted to them (moment matching).
+
+        :param states: ``[N, P, o]`` raw observations
+        :param actions: ``[N, P, a]`` scaled actions
+        :param propagation: one of :data:`PROPAGATIONS`
+        :param generator: random generator for sampling
+        :return: next states ``[N, P, o]`` and, with ``learned_reward``, predicted rewards ``[N, P]``
+        """
+        n, p, o = states.shape
+        e = self.ensemble_size
+        x = self.model_input(states, actions)  # [N, P, in]
+        if propagation == "expectation":
+            mean, _ = self(x.reshape(1, n * p, self.in_dim).expand(e, -1, -1))  # [E, N*P, out]
+            out = self._to_delta(mean.mean(dim=0)).view(n, p, self.out_dim)
+        else:
+            per_member = p // e
+            if propagation in ("ts1", "ds"):
+                order = th.rand(n, p, device=x.device, generator=generator).argsort(dim=1)  # [N, P]
+                x = th.take_along_dim(x, order.unsqueeze(-1), dim=1)
+            # [N, P, in] -> [N, E, P/E, in] -> [E, N * P/E, in]
+            xe = x.view(n, e, per_member, self.in_dim).transpose(0, 1).reshape(e, n * per_member, self.in_dim)
+            mean, logvar = self(xe)
+            noise = th.randn(mean.shape, device=mean.device, dtype=mean.dtype, generator=generator)
+            sample = mean + (0.5 * logvar).exp() * noise  # [E, N * P/E, out]
+            out = self._to_delta(sample.view(e, n, per_member, self.out_dim).transpose(0, 1).reshape(n, p, self.out_dim))
+            if propagation in ("ts1", "ds"):
+                inverse = order.argsort(dim=1)
+                out = th.take_along_dim(out, inverse.unsqueeze(-1), dim=1)
+            if propagation == "ds":
+                mu = out.mean(dim=1, keepdim=True)
+                std = out.std(dim=1, keepdim=True, unbiased=False)
+                noise = th.randn(out.shape, device=out.device, dtype=out.dtype, generator=generator)
+                out = mu + std * noise
+        next_states = states + out[..., : self.obs_dim]
+        rewards = out[..., self.obs_dim] if self.learned_reward else None
+        return next_states, rewards
+
+    # ------------------------------------------------------------------ fitting
+    def _loss(self, x: th.Tensor, y: th.Tensor) -> th.Tensor:
+        """Gaussian NLL summed over members (mean over batch and dims), plus weight decay and bound penalty."""
+        mean, logvar = self(x)
+        nll = ((mean - y) ** 2 * th.exp(-logvar) + logvar).mean(dim=(1, 2)).sum()
+        layers = [*self.hidden, self.output]
+        decay = sum(c * 0.5 * (layer.weight**2).sum() for c, layer in zip(self.weight_decays, layers))
+        bounds = 0.01 * (self.max_logvar.sum() - self.min_logvar.sum())
+        return nll + decay + bounds
+
+    @th.no_grad()
+    def prediction_mse(self, inputs: th.Tensor, targets: th.Tensor, batch: int = 4096) -> float:
+        """
+        Mean squared error of each member's mean prediction, in target units (delta, reward).
+
+        :param inputs: standardised inputs ``[B, in]``
+        :param targets: raw targets ``[B, out]``
+        """
+        total, count = 0.0, 0
+        for start in range(0, inputs.shape[0], batch):
+            x = inputs[start : start + batch]
+            mean, _ = self(x.unsqueeze(0).expand(self.ensemble_size, -1, -1))
+            err = (self._to_delta(mean) - targets[start : start + batch]) ** 2
+            total += err.sum().item()
+            count += err.numel()
+        return total / max(count, 1)
+
+    def fit(
+        self,
+        obs: th.Tensor,
+        actions: th.Tensor,
+        next_obs: th.Tensor,
+        optimizer: th.optim.Optimizer,
+        rewards: th.Tensor | None = None,
+        epochs: int = 5,
+        batch_size: int = 32,
+        holdout_ratio: float = 0.0,
+        patience: int = 5,
+        generator: th.Generator | None = None,
+    ) -> FitResult:
+        """
+        Fit the ensemble on all given transitions (PETS: bootstrap resample per member, the
+        normalisers refit on all data first). With ``holdout_ratio > 0`` a random split is held
+        out and training stops early once its error has not improved for ``patience`` epochs,
+        restoring the best parameters.
+
+        :param obs: ``[B, o]`` observations
+        :param actions: ``[B, a]`` actions scaled to [-1, 1]
+        :param next_obs: ``[B, o]`` next observations
+        :param optimizer: optimizer over this module's parameters
+        :param rewards: ``[B]`` rewards, required with ``learned_reward``
+        :param epochs: passes over the (bootstrapped) training data
+        :param batch_size: minibatch size per member
+        :param holdout_ratio: fraction held out for validation / early stopping
+        :param patience: epochs without holdout improvement before stopping
+        :param generator: random generator for the split, resampling and shuffling
+        :return: a :class:`FitResult`
+        """
+        if self.learned_reward and rewards is None:
+            raise ValueError("This ensemble predicts rewards (learned_reward=True): pass rewards= to fit().")
+        device = self.input_mean.device
+        raw_in = th.cat([obs.index_select(-1, self.obs_index), actions], dim=-1)
+        targets = next_obs - obs
+        if self.learned_reward:
+            assert rewards is not None
+            targets = th.cat([targets, rewards.reshape(-1, 1)], dim=-1)
+        n = raw_in.shape[0]
+        # normalisers refit on all data (std below 1e-12 treated as 1)
+        std = raw_in.std(dim=0, unbiased=False)
+        self.input_mean.copy_(raw_in.mean(dim=0))
+        self.input_std.copy_(th.where(std < 1e-12, th.ones_like(std), std))
+        tstd = targets.std(dim=0, unbiased=False)
+        self.target_mean.copy_(targets.mean(dim=0))
+        self.target_std.copy_(th.where(tstd < 1e-12, th.ones_like(tstd), tstd))
+        inputs = (raw_in - self.input_mean) / self.input_std
+        norm_targets = (targets - self.target_mean) / self.target_std
+
+        perm = th.randperm(n, device=device, generator=generator)
+        n_hold = int(n * holdout_ratio) if n > 1 else 0
+        hold_idx, train_idx = perm[:n_hold], perm[n_hold:]
+        n_train = train_idx.numel()
+        batch_size = max(1, min(batch_size, n_train))
+        e = self.ensemble_size
+        # bootstrap: each member trains on its own with-replacement resample of the training split
+        boot = train_idx[th.randint(n_train, (e, n_train), device=device, generator=generator)]
+
+        best_mse, best_state, stale, epoch_loss = math.inf, None, 0, math.nan
+        epochs_run = 0
+        for _ in range(epochs):
+            epochs_run += 1
+            shuffle = th.rand(e, n_train, device=device, generator=generator).argsort(dim=1)
+            order = th.take_along_dim(boot, shuffle, dim=1)
+            losses = []
+            for start in range(0, n_train, batch_size):
+                idx = order[:, start : start + batch_size]  # [E, b]
+                loss = self._loss(inputs[idx], norm_targets[idx])
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                losses.append(loss.detach())
+            epoch_loss = th.stack(losses).mean().item()
+            if n_hold > 0:
+                mse = self.prediction_mse(inputs[hold_idx], targets[hold_idx])
+                if mse < best_mse - 1e-12:
+                    best_mse, best_state, stale = mse, copy.deepcopy(self.state_dict()), 0
+                else:
+                    stale += 1
+                    if stale >= patience:
+                        break
+        if best_state is not None:
+            self.load_state_dict(best_state)
+        train_mse = self.prediction_mse(inputs[train_idx], targets[train_idx])
+        holdout_mse = self.prediction_mse(inputs[hold_idx], targets[hold_idx]) if n_hold > 0 else math.nan
+        return FitResult(loss=epoch_loss, train_mse=train_mse, holdout_mse=holdout_mse, epochs=epochs_run)

@@ -1,0 +1,339 @@
+"""
+Model-predictive planning: one CEM core, random shooting, search spaces, and one rollout loop.
+
+- An *optimizer* (:class:`CEM`, :class:`RandomShooting`) searches vectors ``z [n_envs, N, D]``
+  given ``evaluate(z) -> returns [n_envs, N]``; it knows nothing about models or variants.
+- A *search space* says what ``z`` means: its size D, its initial mean and variance, how the mean
+  is warm-started between env steps (``shift``), and how ``z`` plus imagined states become
+  actions (``actions``) and which action is executed (``executed_action``). PETS searches action
+  sequences (:class:`ActionSequences`); the POPLIN variants search policy noise.
+- :class:`MPCPlanner` owns the rollout loop through the learned model. It never names a variant.
+
+All actions inside the planner are in the scaled space [-1, 1] the replay buffer uses; the task's
+reward function receives them in env units.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import torch as th
+
+from sb3_poplin.dynamics import ProbabilisticEnsemble
+from sb3_poplin.tasks import RewardFn, TerminationFn
+
+Evaluate = Callable[[th.Tensor], th.Tensor]
+SAMPLINGS = ("truncated", "clipped")
+
+# the standard normal CDF at -2 and +2: bounds of the uniform draw for a normal truncated at 2 sigma
+_PHI_MINUS_2 = 0.5 * (1.0 + math.erf(-2.0 / math.sqrt(2.0)))
+_PHI_PLUS_2 = 0.5 * (1.0 + math.erf(2.0 / math.sqrt(2.0)))
+
+
+def truncated_normal(shape: tuple[int, ...], device: th.device, generator: th.Generator | None = None) -> th.Tensor:
+    """Standard normal samples truncated to [-2, 2] (exact, by inverting the CDF)."""
+    u = th.rand(shape, device=device, generator=generator) * (_PHI_PLUS_2 - _PHI_MINUS_2) + _PHI_MINUS_2
+    return (math.sqrt(2.0) * th.erfinv(2.0 * u - 1.0)).clamp_(-2.0, 2.0)
+
+
+class OptimizerResult(NamedTuple):
+    """What an optimizer found for each env."""
+
+    solution: th.Tensor  # [n_envs, D]: CEM's final mean, or random shooting's best sample
+    elite_return: th.Tensor  # [n_envs]: mean return of the final elites (or the best sample)
+
+
+class CEM:
+    """
+    Cross-entropy method with momentum (PETS/POPLIN): sample ``population_size`` candidates from
+    N(mean, var), keep the ``num_elites`` best, and move mean and variance towards the elites'
+    statistics: ``new = alpha * old + (1 - alpha) * elite``. A candidate whose return is NaN or
+    +-inf is never an elite; if an env has no finite candidate, its distribution is left unchanged.
+
+    :param population_size: candidates per iteration and env
+    :param num_elites: elites per iteration
+    :param iterations: CEM iterations per plan
+    :param alpha: momentum of the old statistics, in [0, 1)
+    :param sampling: ``"truncated"`` (normal truncated at 2 sigma, redrawn beyond) or ``"clipped"``
+        (plain normal; the search space clips to its bounds)
+    """
+
+    def __init__(
+        self,
+        population_size: int,
+        num_elites: int,
+        iterations: int,
+        alpha: float = 0.1,
+        sampling: str = "truncated",
+    ) -> None:
+        if sampling not in SAMPLINGS:
+            raise ValueError(f"Unknown CEM sampling {sampling!r}; accepted values: {list(SAMPLINGS)}")
+        self.population_size = population_size
+        self.num_elites = num_elites
+        self.iterations = iterations
+        self.alpha = alpha
+        self.sampling = sampling
+
+    def _noise(self, shape: tuple[int, ...], device: th.device, generator: th.Generator | None) -> th.Tensor:
+        if self.sampling == "truncated":
+            return truncated_normal(shape, device, generator)
+        return th.randn(shape, device=device, generator=generator)
+
+    def optimize(
+        self,
+        evaluate: Evaluate,
+        mean: th.Tensor,
+        var: th.Tensor,
+        constrain_var: Callable[[th.Tensor, th.Tensor], th.Tensor],
+        generator: th.Generator | None = None,
+    ) -> OptimizerResult:
+        """
+        :param evaluate: ``z [n_envs, N, D] -> returns [n_envs, N]``
+        :param mean: initial mean ``[n_envs, D]``
+        :param var: initial variance ``[n_envs, D]``
+        :param constrain_var: the search space's variance constraint ``(mean, var) -> var``
+        :param generator: random generator for the samples
+        """
+        n_envs, dim = mean.shape
+        elite_return = th.zeros(n_envs, device=mean.device)
+        for _ in range(self.iterations):
+            std = constrain_var(mean, var).sqrt()
+            noise = self._noise((n_envs, self.population_size, dim), mean.device, generator)
+            z = mean.unsqueeze(1) + std.unsqueeze(1) * noise  # [n_envs, N, D]
+            returns = evaluate(z)  # [n_envs, N]
+            returns = th.where(th.isfinite(returns), returns, th.full_like(returns, -math.inf))
+            top, idx = returns.topk(self.num_elites, dim=1)  # [n_envs, K]
+            elites = th.take_along_dim(z, idx.unsqueeze(-1), dim=1)  # [n_envs, K, D]
+            valid = th.isfinite(top)  # [n_envs, K]: -inf rows are not elites
+            weight = valid.unsqueeze(-1).to(z.dtype)
+            count = weight.sum(dim=1).clamp(min=1.0)  # [n_envs, 1]
+            elite_mean = (elites * weight).sum(dim=1) / count
+            elite_var = ((elites - elite_mean.unsqueeze(1)) ** 2 * weight).sum(dim=1) / count
+            has_elites = valid.any(dim=1, keepdim=True)  # [n_envs, 1]
+            mean = th.where(has_elites, self.alpha * mean + (1 - self.alpha) * elite_mean, mean)
+            var = th.where(has_elites, self.alpha * var + (1 - self.alpha) * elite_var, var)
+            elite_return = th.where(valid, top, th.zeros_like(top)).sum(dim=1) / count.squeeze(1)
+        return OptimizerResult(mean, elite_return)
+
+
+class RandomShooting:
+    """
+    Random shooting: one round of ``population_size`` uniform samples over [-1, 1]^D per env;
+    the best candidate is the solution. Non-finite returns rank last.
+
+    :param population_size: candidates per env
+    """
+
+    def __init__(self, population_size: int) -> None:
+        self.population_size = population_size
+        self.iterations = 1
+
+    def optimize(
+        self,
+        evaluate: Evaluate,
+        mean: th.Tensor,
+        var: th.Tensor,
+        constrain_var: Callable[[th.Tensor, th.Tensor], th.Tensor],
+        generator: th.Generator | None = None,
+    ) -> OptimizerResult:
+        n_envs, dim = mean.shape
+        z = th.rand((n_envs, self.population_size, dim), device=mean.device, generator=generator) * 2.0 - 1.0
+        returns = evaluate(z)
+        returns = th.where(th.isfinite(returns), returns, th.full_like(returns, -math.inf))
+        best_return, best = returns.max(dim=1)
+        solution = th.take_along_dim(z, best.view(n_envs, 1, 1), dim=1).squeeze(1)
+        # with no finite candidate at all, fall back to the incoming mean
+        finite = th.isfinite(best_return).unsqueeze(1)
+        return OptimizerResult(th.where(finite, solution, mean), th.where(finite.squeeze(1), best_return, 0.0))
+
+
+class SearchSpace(ABC):
+    """
+    What the planner searches over. Subclasses define the search vector's size and meaning.
+
+    :param horizon: planning horizon H
+    :param action_dim: action size A
+    :param init_var: initial CEM variance of every search dimension
+    """
+
+    def __init__(self, horizon: int, action_dim: int, init_var: float) -> None:
+        self.horizon = horizon
+        self.action_dim = action_dim
+        self.init_var = init_var
+
+    @property
+    @abstractmethod
+    def dim(self) -> int:
+        """Size D of the search vector."""
+
+    def initial_mean(self, n_envs: int, device: th.device) -> th.Tensor:
+        """Mean at an episode start, ``[n_envs, D]`` (zero noise / centred actions)."""
+        return th.zeros(n_envs, self.dim, device=device)
+
+    def initial_var(self, mean: th.Tensor) -> th.Tensor:
+        """Variance at the start of every plan (the variance is never carried over)."""
+        return th.full_like(mean, self.init_var)
+
+    def constrain_var(self, mean: th.Tensor, var: th.Tensor) -> th.Tensor:
+        """Variance actually sampled with; the identity unless the space has hard bounds."""
+        return var
+
+    @abstractmethod
+    def shift(self, mean: th.Tensor) -> th.Tensor:
+        """Warm start for the next env step from the final mean ``[n_envs, D]``."""
+
+    def prepare(self, obs: th.Tensor, planner: MPCPlanner) -> Any:
+        """Per-plan context computed once from the real observations ``[n_envs, o]`` (default: none)."""
+        return None
+
+    @abstractmethod
+    def actions(self, z: th.Tensor, t: int, states: th.Tensor, context: Any) -> th.Tensor:
+        """
+        :param z: search vectors ``[n_envs, N, D]``
+        :param t: planning step
+        :param states: imagined states ``[n_envs, N, P, o]``
+        :param context: what :meth:`prepare` returned
+        :return: scaled actions ``[n_envs, N, P, A]`` in [-1, 1]
+        """
+
+    @abstractmethod
+    def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
+        """Scaled action ``[n_envs, A]`` to execute given the optimizer's solution ``[n_envs, D]``."""
+
+
+class ActionSequences(SearchSpace):
+    """
+    PETS: the search vector is the action sequence ``a_0 .. a_{H-1}`` (scaled), ``D = H * A``.
+    The sampled variance is capped so that 2 sigma stays inside the bounds:
+    ``var <= min(((mean + 1) / 2)^2, ((1 - mean) / 2)^2)``. The warm start drops the executed
+    first action and appends zeros (the action-space centre).
+    """
+
+    @property
+    def dim(self) -> int:
+        return self.horizon * self.action_dim
+
+    def constrain_var(self, mean: th.Tensor, var: th.Tensor) -> th.Tensor:
+        room = th.minimum(mean + 1.0, 1.0 - mean).clamp(min=0.0) / 2.0
+        return th.minimum(var, room**2)
+
+    def shift(self, mean: th.Tensor) -> th.Tensor:
+        return th.cat([mean[:, self.action_dim :], th.zeros_like(mean[:, : self.action_dim])], dim=1)
+
+    def actions(self, z: th.Tensor, t: int, states: th.Tensor, context: Any) -> th.Tensor:
+        a = z[:, :, t * self.action_dim : (t + 1) * self.action_dim].clamp(-1.0, 1.0)  # [n_envs, N, A]
+        return a.unsqueeze(2).expand(-1, -1, states.shape[2], -1)
+
+    def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
+        return solution[:, : self.action_dim].clamp(-1.0, 1.0)
+
+
+class PlanResult(NamedTuple):
+    """One plan for a batch of envs."""
+
+    action: th.Tensor  # [n_envs, A] scaled action to execute
+    next_mean: th.Tensor  # [n_envs, D] warm start for the next env step
+    elite_return: th.Tensor  # [n_envs] planned return of the final elites
+
+
+class MPCPlanner:
+    """
+    Plans with a learned model: the one rollout loop shared by every variant.
+
+    :param model: the dynamics ensemble
+    :param search_space: what is searched
+    :param optimizer: :class:`CEM` or :class:`RandomShooting`
+    :param reward_fn: task reward ``(obs, action in env units, next_obs) -> [B]``; ``None`` when
+        the model predicts the reward
+    :param termination_fn: task termination, or ``None`` (never terminates); rewards after a
+        predicted termination are masked
+    :param propagation: one of :data:`sb3_poplin.dynamics.PROPAGATIONS`
+    :param num_particles: particles per candidate (1 with ``"expectation"``)
+    :param action_low: env lower bounds ``[A]``
+    :param action_high: env upper bounds ``[A]``
+    """
+
+    def __init__(
+        self,
+        model: ProbabilisticEnsemble,
+        search_space: SearchSpace,
+        optimizer: CEM | RandomShooting,
+        reward_fn: RewardFn | None,
+        termination_fn: TerminationFn | None,
+        propagation: str,
+        num_particles: int,
+        action_low: th.Tensor,
+        action_high: th.Tensor,
+    ) -> None:
+        if reward_fn is None and not model.learned_reward:
+            raise ValueError("The planner needs a reward: pass reward_fn or use a model with learned_reward=True.")
+        self.model = model
+        self.search_space = search_space
+        self.optimizer = optimizer
+        self.reward_fn = reward_fn
+        self.termination_fn = termination_fn
+        self.propagation = propagation
+        self.num_particles = 1 if propagation == "expectation" else num_particles
+        self.action_low = action_low
+        self.action_scale = (action_high - action_low) / 2.0
+
+    def to_env_units(self, scaled: th.Tensor) -> th.Tensor:
+        """Map scaled actions in [-1, 1] to env units."""
+        return self.action_low + (scaled + 1.0) * self.action_scale
+
+    def rollout(self, obs: th.Tensor, z: th.Tensor, context: Any, generator: th.Generator | None = None) -> th.Tensor:
+        """
+        Mean return over particles of each candidate, through the learned model.
+
+        :param obs: real observations ``[n_envs, o]``
+        :param z: search vectors ``[n_envs, N, D]``
+        :param context: what the search space's ``prepare`` returned
+        :param generator: random generator for propagation
+        :return: returns ``[n_envs, N]`` (NaN/inf where the model diverged)
+        """
+        n_envs, pop, _ = z.shape
+        p, o = self.num_particles, obs.shape[-1]
+        states = obs.view(n_envs, 1, 1, o).expand(n_envs, pop, p, o)  # [n_envs, N, P, o]
+        total = th.zeros(n_envs, pop, p, device=obs.device)
+        alive = th.ones(n_envs, pop, p, dtype=th.bool, device=obs.device)
+        for t in range(self.search_space.horizon):
+            actions = self.search_space.actions(z, t, states, context)  # [n_envs, N, P, A]
+            flat_states = states.reshape(n_envs * pop, p, o)
+            flat_actions = actions.reshape(n_envs * pop, p, -1)
+            next_flat, model_reward = self.model.propagate(flat_states, flat_actions, self.propagation, generator)
+            transition = (
+                flat_states.reshape(-1, o),
+                self.to_env_units(flat_actions.reshape(-1, flat_actions.shape[-1])),
+                next_flat.reshape(-1, o),
+            )
+            if self.reward_fn is None:
+                assert model_reward is not None
+                reward = model_reward.reshape(n_envs, pop, p)
+            else:
+                reward = self.reward_fn(*transition).reshape(n_envs, pop, p)
+            total = total + th.where(alive, reward, th.zeros_like(reward))
+            if self.termination_fn is not None:
+                alive = alive & ~self.termination_fn(*transition).reshape(n_envs, pop, p)
+            states = next_flat.view(n_envs, pop, p, o)
+        return total.mean(dim=2)
+
+    @th.inference_mode()
+    def plan(self, obs: th.Tensor, mean: th.Tensor, generator: th.Generator | None = None) -> PlanResult:
+        """
+        :param obs: real observations ``[n_envs, o]``
+        :param mean: warm-start mean ``[n_envs, D]``
+        :param generator: random generator for sampling and propagation
+        """
+        context = self.search_space.prepare(obs, self)
+        result = self.optimizer.optimize(
+            lambda z: self.rollout(obs, z, context, generator),
+            mean,
+            self.search_space.initial_var(mean),
+            self.search_space.constrain_var,
+            generator,
+        )
+        action = self.search_space.executed_action(result.solution, obs, context)
+        return PlanResult(action, self.search_space.shift(result.solution), result.elite_return)

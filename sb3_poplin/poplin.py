@@ -1,0 +1,481 @@
+"""
+POPLIN as a Stable-Baselines3 algorithm: SB3 glue only.
+
+:class:`POPLIN` subclasses ``OffPolicyAlgorithm``: SB3 runs the loop, the replay buffer, logging,
+callbacks and save/load. This module resolves the settings, builds the networks
+(:mod:`sb3_poplin.policies`), the planner (:mod:`sb3_poplin.planning`) and the task
+(:mod:`sb3_poplin.tasks`), and overrides ``predict`` (MPC control), ``train`` (fit the model after
+each episode) and the save hooks.
+
+Loop (Wang & Ba 2019, after PETS): uniform random actions until the model has been fitted once
+(one episode by default), then after every ``train_freq`` period (one episode) fit the model on
+all data and collect the next period with MPC.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+from typing import Any, ClassVar, TypeVar
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_poplin.dynamics import PROPAGATIONS
+from sb3_poplin.planning import CEM, SAMPLINGS, ActionSequences, MPCPlanner, RandomShooting, SearchSpace
+from sb3_poplin.policies import POPLINPolicy
+from sb3_poplin.tasks import RewardFn, TerminationFn, has_task, make_task
+
+SelfPOPLIN = TypeVar("SelfPOPLIN", bound="POPLIN")
+
+CONTROLS = ("mpc", "policy")
+# variant -> initial CEM variance of its search space
+DEFAULT_INIT_VAR = {"pets": 0.25, "rs": 0.25}
+
+
+def _env_id(env: GymEnv | str | None) -> str | None:
+    """The gymnasium id behind an env id, Env or VecEnv (None when it cannot be told)."""
+    if env is None or isinstance(env, str):
+        return env
+    try:
+        spec = env.get_attr("spec", [0])[0] if isinstance(env, VecEnv) else env.unwrapped.spec
+    except (AttributeError, IndexError):
+        return None
+    return None if spec is None else spec.id
+
+
+def _max_episode_steps(env: GymEnv | None) -> int | None:
+    if env is None:
+        return None
+    try:
+        spec = env.get_attr("spec", [0])[0] if isinstance(env, VecEnv) else env.spec
+    except (AttributeError, IndexError):
+        return None
+    return None if spec is None else spec.max_episode_steps
+
+
+def _check_spaces(env: GymEnv | None) -> None:
+    """Reject what the planner cannot handle, with the reason and the fix."""
+    if env is None:
+        return
+    action_space, observation_space = env.action_space, env.observation_space
+    if not isinstance(action_space, spaces.Box):
+        raise ValueError(
+            f"POPLIN plans continuous actions and needs a Box action space, got {action_space}. "
+            "Use a continuous-action environment (e.g. Pendulum-v1), or a model-free SB3 algorithm "
+            "such as DQN or PPO for discrete actions."
+        )
+    if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
+        raise ValueError(
+            f"POPLIN needs finite action bounds, got low={action_space.low}, high={action_space.high}. "
+            "Wrap the env with gymnasium.wrappers.ClipAction or RescaleAction to bound it."
+        )
+    if not isinstance(observation_space, spaces.Box) or len(observation_space.shape) != 1:
+        raise ValueError(
+            f"POPLIN needs a flat Box observation space, got {observation_space}. "
+            "Flatten it first (gymnasium.wrappers.FlattenObservation)."
+        )
+
+
+class POPLIN(OffPolicyAlgorithm):
+    """
+    Model-based planning with a learned probabilistic ensemble: PETS, random shooting, and
+    (in a later release) POPLIN-A / POPLIN-P. Paper: https://arxiv.org/abs/1906.08649
+    (Wang & Ba, 2019); PETS: https://arxiv.org/abs/1805.12114 (Chua et al., 2018).
+
+    :param policy: the variant: ``"pets"`` (CEM over action sequences) or ``"rs"`` (random shooting)
+    :param env: env id or (Vec)Env with a Box action space and a flat Box observation space
+    :param horizon: planning horizon H
+    :param population_size: candidates per CEM iteration (random shooting: the number of samples)
+    :param num_elites: elites per CEM iteration
+    :param cem_iterations: CEM iterations per env step
+    :param cem_alpha: CEM momentum: ``new = alpha * old + (1 - alpha) * elite``, in [0, 1)
+    :param init_var: initial CEM variance of the search space; ``None`` for the variant default
+        (PETS 0.25, in scaled action units)
+    :param cem_sampling: ``"truncated"`` (normal truncated at 2 sigma) or ``"clipped"``
+    :param ensemble_size: members of the dynamics ensemble
+    :param dynamics_net_arch: hidden widths of each member (swish)
+    :param propagation: ``"expectation"`` (mean over members, no particles), ``"ts1"``, ``"tsinf"``
+        or ``"ds"`` (PETS trajectory sampling / distribution sampling with ``num_particles``)
+    :param num_particles: particles per candidate for the sampling propagations; a multiple of
+        ``ensemble_size``
+    :param model_epochs: epochs over all data at every model fit
+    :param model_batch_size: minibatch size of the model fit (per member)
+    :param model_learning_rate: Adam learning rate of the model
+    :param holdout_ratio: fraction of the data held out for early stopping of the model fit
+    :param learned_reward: the ensemble also predicts the reward and the planner uses it;
+        ``None``: only when no reward is known for the env
+    :param reward_fn: ``(obs, action in env units, next_obs) -> [B]`` torch reward; overrides the task registry
+    :param termination_fn: ``(obs, action, next_obs) -> bool [B]``; overrides the task registry
+    :param learning_starts: random-action steps before planning; ``None``: until the model has been
+        fitted once (one episode with the default ``train_freq``)
+    :param train_freq: when the model is refit; ``None``: after every episode, or with several envs
+        after every episode length's worth of steps
+    :param buffer_size: replay buffer size
+    :param control: ``"mpc"`` (plan every action with the model); policy control comes with POPLIN-A/P
+    :param stats_window_size: window for rollout logging averages
+    :param tensorboard_log: tensorboard log folder
+    :param verbose: 0 none, 1 training info, 2 debug
+    :param seed: random seed (also seeds the planner's generator)
+    :param device: ``"auto"``, ``"cpu"`` or ``"cuda"``
+    :param _init_setup_model: build the networks at construction (SB3 interface)
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"pets": POPLINPolicy, "rs": POPLINPolicy}
+    policy: POPLINPolicy
+
+    def __init__(
+        self,
+        policy: str | type[POPLINPolicy] = "pets",
+        env: GymEnv | str | None = None,
+        horizon: int = 30,
+        population_size: int = 500,
+        num_elites: int = 50,
+        cem_iterations: int = 5,
+        cem_alpha: float = 0.1,
+        init_var: float | None = None,
+        cem_sampling: str = "truncated",
+        ensemble_size: int = 5,
+        dynamics_net_arch: Sequence[int] = (200, 200, 200, 200),
+        propagation: str = "expectation",
+        num_particles: int = 20,
+        model_epochs: int = 5,
+        model_batch_size: int = 32,
+        model_learning_rate: float = 1e-3,
+        holdout_ratio: float = 0.0,
+        learned_reward: bool | None = None,
+        reward_fn: RewardFn | None = None,
+        termination_fn: TerminationFn | None = None,
+        learning_starts: int | None = None,
+        train_freq: int | tuple[int, str] | None = None,
+        buffer_size: int = 1_000_000,
+        control: str = "mpc",
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        if isinstance(policy, str):
+            if policy not in self.policy_aliases:
+                raise ValueError(f"Unknown POPLIN variant {policy!r}; accepted values: {list(self.policy_aliases)}")
+            self.variant = policy
+        elif _init_setup_model:
+            raise ValueError(f"policy must be a variant name, one of {list(self.policy_aliases)}; got {policy!r}")
+        self.task_id = _env_id(env)
+        if isinstance(env, str):
+            env = gym.make(env, **(make_task(env).env_kwargs if has_task(env) else {}))
+        _check_spaces(env)
+
+        self.horizon = horizon
+        self.population_size = population_size
+        self.num_elites = num_elites
+        self.cem_iterations = cem_iterations
+        self.cem_alpha = cem_alpha
+        self.init_var = init_var
+        self.cem_sampling = cem_sampling
+        self.ensemble_size = ensemble_size
+        self.dynamics_net_arch = list(dynamics_net_arch)
+        self.propagation = propagation
+        self.num_particles = num_particles
+        self.model_epochs = model_epochs
+        self.model_batch_size = model_batch_size
+        self.model_learning_rate = model_learning_rate
+        self.holdout_ratio = holdout_ratio
+        self.learned_reward = learned_reward
+        self.user_reward_fn = reward_fn
+        self.user_termination_fn = termination_fn
+        self._model_fitted = False
+        if _init_setup_model:
+            self._check_settings()
+        self._control = "mpc"
+
+        default_train_freq = train_freq is None
+        super().__init__(
+            policy=policy,
+            env=env,  # type: ignore[arg-type]
+            learning_rate=model_learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=0 if learning_starts is None else learning_starts,
+            batch_size=model_batch_size,
+            train_freq=(1, "episode") if default_train_freq else train_freq,  # type: ignore[arg-type]
+            gradient_steps=1,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            support_multi_env=True,
+            seed=seed,
+            sde_support=False,
+            supported_action_spaces=(spaces.Box,),
+        )
+        if _init_setup_model and default_train_freq and self.n_envs > 1:
+            # SB3 counts episodes with one env only: refit every episode length's worth of steps
+            self.train_freq = (_max_episode_steps(self.env) or 1000, "step")
+        if _init_setup_model:
+            self.control = control
+            self._setup_model()
+
+    # ------------------------------------------------------------------ settings
+    def _check_settings(self) -> None:
+        def positive(name: str) -> None:
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+
+        for name in ("horizon", "population_size", "cem_iterations", "ensemble_size", "model_epochs", "model_batch_size"):
+            positive(name)
+        if self.variant != "rs" and not 1 <= self.num_elites <= self.population_size:
+            raise ValueError(
+                f"num_elites must be between 1 and population_size ({self.population_size}), got {self.num_elites}"
+            )
+        if not 0.0 <= self.cem_alpha < 1.0:
+            raise ValueError(f"cem_alpha must be in [0, 1), got {self.cem_alpha}")
+        if self.init_var is not None and not self.init_var > 0:
+            raise ValueError(f"init_var must be > 0 (or None for the variant default), got {self.init_var}")
+        if self.cem_sampling not in SAMPLINGS:
+            raise ValueError(f"Unknown cem_sampling {self.cem_sampling!r}; accepted values: {list(SAMPLINGS)}")
+        if self.propagation not in PROPAGATIONS:
+            raise ValueError(f"Unknown propagation {self.propagation!r}; accepted values: {list(PROPAGATIONS)}")
+        if self.propagation != "expectation" and (self.num_particles < 1 or self.num_particles % self.ensemble_size):
+            raise ValueError(
+                f"num_particles ({self.num_particles}) must be a positive multiple of ensemble_size "
+                f"({self.ensemble_size}) so that each member gets the same number of particles"
+            )
+        if not 0.0 <= self.holdout_ratio < 1.0:
+            raise ValueError(f"holdout_ratio must be in [0, 1), got {self.holdout_ratio}")
+
+    @property
+    def control(self) -> str:
+        """What ``predict`` does: ``"mpc"`` plans with the model, ``"policy"`` runs the policy network."""
+        return self._control
+
+    @control.setter
+    def control(self, value: str) -> None:
+        if value not in CONTROLS:
+            raise ValueError(f"Unknown control {value!r}; accepted values: {list(CONTROLS)}")
+        if value == "policy" and self.variant in ("pets", "rs"):
+            raise ValueError(
+                f"The {self.variant!r} variant has no policy network, so control='policy' is not available: "
+                "use control='mpc', or a 'poplin-a' / 'poplin-p' agent."
+            )
+        self._control = value
+
+    # ------------------------------------------------------------------ setup
+    def _resolve_task(self) -> tuple[RewardFn | None, TerminationFn | None, tuple[int, ...]]:
+        task = make_task(self.task_id) if self.task_id is not None and has_task(self.task_id) else None
+        reward_fn = self.user_reward_fn or (task.reward_fn if task else None)
+        termination_fn = self.user_termination_fn or (task.termination_fn if task else None)
+        exclude = task.model_input_exclude if task else ()
+        if self.learned_reward is None:
+            self.learned_reward = reward_fn is None
+        if self.learned_reward and termination_fn is None and task is None:
+            warnings.warn(
+                f"No reward or termination function is known for {self.task_id!r}: the model learns the reward and "
+                "the planner assumes episodes never terminate. Pass termination_fn= (or register a TaskSpec with "
+                "sb3_poplin.tasks.register_task) if this env can terminate.",
+                stacklevel=3,
+            )
+        return (None if self.learned_reward else reward_fn), termination_fn, tuple(exclude)
+
+    def _make_search_space(self) -> SearchSpace:
+        init_var = DEFAULT_INIT_VAR[self.variant] if self.init_var is None else self.init_var
+        return ActionSequences(self.horizon, int(self.action_space.shape[0]), init_var)  # type: ignore[index]
+
+    def _setup_model(self) -> None:
+        reward_fn, termination_fn, exclude = self._resolve_task()
+        self.policy_kwargs = dict(
+            ensemble_size=self.ensemble_size,
+            dynamics_net_arch=self.dynamics_net_arch,
+            model_input_exclude=list(exclude),
+            learned_reward=self.learned_reward,
+            model_learning_rate=self.model_learning_rate,
+        )
+        self._generator = th.Generator(device=self.device)
+        super()._setup_model()
+        self.policy.set_training_mode(False)
+        optimizer: CEM | RandomShooting
+        if self.variant == "rs":
+            optimizer = RandomShooting(self.population_size)
+        else:
+            optimizer = CEM(self.population_size, self.num_elites, self.cem_iterations, self.cem_alpha, self.cem_sampling)
+        assert isinstance(self.action_space, spaces.Box)
+        self.planner = MPCPlanner(
+            model=self.policy.dynamics,
+            search_space=self._make_search_space(),
+            optimizer=optimizer,
+            reward_fn=reward_fn,
+            termination_fn=termination_fn,
+            propagation=self.propagation,
+            num_particles=self.num_particles,
+            action_low=th.as_tensor(self.action_space.low, dtype=th.float32, device=self.device),
+            action_high=th.as_tensor(self.action_space.high, dtype=th.float32, device=self.device),
+        )
+        self._warm_start: th.Tensor | None = None
+        self._plan_return_sum = th.zeros((), device=self.device)
+        self._plan_count = 0
+
+    def set_random_seed(self, seed: int | None = None) -> None:
+        """Seed python, numpy, torch, the action space and the planner's generator."""
+        super().set_random_seed(seed)
+        generator = getattr(self, "_generator", None)
+        if generator is not None:
+            if seed is None:
+                generator.seed()
+            else:
+                generator.manual_seed(seed)
+
+    # ------------------------------------------------------------------ acting
+    def predict(
+        self,
+        observation: np.ndarray | dict[str, np.ndarray],
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, Any]:
+        """
+        Plan actions for one observation or a VecEnv batch (all envs in one batched plan).
+
+        The returned state is the planner's warm start (the shifted CEM mean, one row per env);
+        pass it back with ``episode_start`` as ``evaluate_policy`` does. Without state and
+        episode_start the agent keeps its own warm start between calls (as during training).
+        Planning is stochastic either way; ``deterministic`` is accepted for SB3 compatibility and
+        executes the final CEM mean, as in the paper.
+
+        :param observation: observation(s) in env units
+        :param state: warm start returned by the previous call, or None
+        :param episode_start: per-env flags; True resets that env's warm start
+        :param deterministic: SB3 interface (see above)
+        :return: actions in env units and the new warm start
+        """
+        if self.control == "policy":
+            return self.policy.predict(observation, state, episode_start, deterministic)
+        obs, vectorized = self.policy.obs_to_tensor(observation)
+        obs = obs.float()
+        n_envs = obs.shape[0]
+        space = self.planner.search_space
+        internal = state is None and episode_start is None
+        if internal and self._warm_start is not None and self._warm_start.shape[0] == n_envs:
+            mean = self._warm_start
+        elif state is None:
+            mean = space.initial_mean(n_envs, self.device)
+        else:
+            mean = th.as_tensor(state, dtype=th.float32, device=self.device)
+            if mean.shape != (n_envs, space.dim):
+                raise ValueError(
+                    f"state has shape {tuple(mean.shape)} but the planner needs ({n_envs}, {space.dim}): pass back the "
+                    "state returned by the previous predict() call for the same observations, or None"
+                )
+        if episode_start is not None:
+            reset = th.as_tensor(np.asarray(episode_start, dtype=bool).reshape(-1), device=self.device)
+            mean = th.where(reset.unsqueeze(1), space.initial_mean(n_envs, self.device), mean)
+        result = self.planner.plan(obs, mean, self._generator)
+        if internal:
+            self._warm_start = result.next_mean
+        self._plan_return_sum = self._plan_return_sum + result.elite_return.sum()
+        self._plan_count += n_envs
+        actions = self.planner.to_env_units(result.action).cpu().numpy()
+        if not vectorized:
+            actions = actions.squeeze(0)
+        return actions, result.next_mean
+
+    def _sample_action(
+        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
+        # The original: uniform random actions until the model has been trained once.
+        if not self._model_fitted:
+            learning_starts = max(learning_starts, self.num_timesteps + 1)
+        return super()._sample_action(learning_starts, action_noise, n_envs)
+
+    def _store_transition(
+        self,
+        replay_buffer: ReplayBuffer,
+        buffer_action: np.ndarray,
+        new_obs: np.ndarray | dict[str, np.ndarray],
+        reward: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        if self._warm_start is not None and np.any(dones):
+            reset = th.as_tensor(np.asarray(dones, dtype=bool), device=self.device)
+            fresh = self.planner.search_space.initial_mean(len(dones), self.device)
+            self._warm_start = th.where(reset.unsqueeze(1), fresh, self._warm_start)
+
+    # ------------------------------------------------------------------ training
+    def _transitions(self) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
+        """All stored transitions as float32 tensors: obs, scaled actions, next obs, rewards."""
+        buffer = self.replay_buffer
+        assert buffer is not None
+        upper = buffer.buffer_size if buffer.full else buffer.pos
+
+        def flat(array: np.ndarray) -> th.Tensor:
+            array = array[:upper]
+            return th.as_tensor(array.reshape(upper * array.shape[1], -1), dtype=th.float32, device=self.device)
+
+        return flat(buffer.observations), flat(buffer.actions), flat(buffer.next_observations), flat(buffer.rewards)[:, 0]
+
+    def train(self, gradient_steps: int, batch_size: int) -> None:
+        """Refit the dynamics model on all data (``model_epochs`` epochs)."""
+        self.policy.set_training_mode(True)
+        obs, actions, next_obs, rewards = self._transitions()
+        result = self.policy.dynamics.fit(
+            obs,
+            actions,
+            next_obs,
+            self.policy.dynamics_optimizer,
+            rewards=rewards if self.learned_reward else None,
+            epochs=self.model_epochs,
+            batch_size=self.model_batch_size,
+            holdout_ratio=self.holdout_ratio,
+            generator=self._generator,
+        )
+        self.policy.set_training_mode(False)
+        self._model_fitted = True
+        self._n_updates += 1
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/model_loss", result.loss)
+        self.logger.record("train/model_mse", result.train_mse)
+        if not math.isnan(result.holdout_mse):
+            self.logger.record("train/model_holdout_mse", result.holdout_mse)
+        self.logger.record("train/model_epochs", result.epochs)
+        self.logger.record("train/n_transitions", int(obs.shape[0]))
+        if self._plan_count:
+            self.logger.record("plan/elite_return", (self._plan_return_sum / self._plan_count).item())
+            self._plan_return_sum = th.zeros((), device=self.device)
+            self._plan_count = 0
+
+    def learn(
+        self: SelfPOPLIN,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 1,
+        tb_log_name: str = "POPLIN",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfPOPLIN:
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    # ------------------------------------------------------------------ saving
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "planner", "_generator", "_warm_start", "_plan_return_sum"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        return ["policy", "policy.dynamics_optimizer"], []

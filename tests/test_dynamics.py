@@ -1,0 +1,131 @@
+"""The probabilistic ensemble: batched layers, propagation modes, fitting quality."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_poplin.dynamics import EnsembleLinear, ProbabilisticEnsemble, default_weight_decays
+
+
+def test_ensemble_linear_equals_a_loop_over_members():
+    th.manual_seed(0)
+    layer = EnsembleLinear(4, 7, 3)
+    with th.no_grad():
+        layer.bias.normal_()
+    x = th.randn(4, 10, 7)
+    expected = th.stack([x[e] @ layer.weight[e] + layer.bias[e] for e in range(4)])
+    assert th.allclose(layer(x), expected, atol=1e-6)
+
+
+def test_default_weight_decays_match_the_paper():
+    assert default_weight_decays(4) == [2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4]
+    assert default_weight_decays(2) == [2.5e-5, 5e-5, 1e-4]
+
+
+def test_logvar_is_softly_bounded():
+    model = ProbabilisticEnsemble(3, 1, ensemble_size=2, hidden_sizes=(8,))
+    with th.no_grad():
+        model.output.bias.fill_(1e3)
+    _, logvar = model(th.zeros(2, 5, model.in_dim))
+    assert (logvar <= 0.5 + 1e-4).all()  # soft: softplus(10.5) - 10.5 = 2.8e-5 above the bound
+    with th.no_grad():
+        model.output.bias.fill_(-1e3)
+    _, logvar = model(th.zeros(2, 5, model.in_dim))
+    assert (logvar >= -10.0 - 1e-6).all()
+
+
+class MemberAddsIndex(ProbabilisticEnsemble):
+    """Mock: member e predicts a delta of exactly e on every dimension (no noise)."""
+
+    def forward(self, x):
+        e, b, _ = x.shape
+        mean = th.arange(e, dtype=x.dtype).view(e, 1, 1).expand(e, b, self.out_dim)
+        return mean, th.full_like(mean, -80.0)
+
+
+def test_propagation_member_assignment():
+    e, p, n = 4, 8, 3
+    model = MemberAddsIndex(obs_dim=2, action_dim=1, ensemble_size=e, hidden_sizes=(4,))
+    states, actions = th.zeros(n, p, 2), th.zeros(n, p, 1)
+    gen = th.Generator().manual_seed(0)
+
+    # expectation: one row per candidate through every member, mean of the members
+    nxt, _ = model.propagate(th.zeros(n, 1, 2), th.zeros(n, 1, 1), "expectation", gen)
+    assert th.allclose(nxt, th.full((n, 1, 2), (e - 1) / 2))
+
+    # tsinf: particle p always goes to member p // (P / E): spread evenly, fixed
+    nxt, _ = model.propagate(states, actions, "tsinf", gen)
+    expected = (th.arange(p) // (p // e)).float()
+    assert th.allclose(nxt[..., 0], expected.expand(n, p))
+
+    # ts1: a fresh random assignment per step, still P / E particles per member for every candidate
+    first, _ = model.propagate(states, actions, "ts1", gen)
+    second, _ = model.propagate(states, actions, "ts1", gen)
+    for out in (first, second):
+        counts = th.stack([(out[..., 0].round() == m).sum(dim=1) for m in range(e)], dim=1)
+        assert th.equal(counts, th.full((n, e), p // e))
+    assert not th.equal(first, second)
+
+
+def test_ds_resamples_from_the_particles_moments():
+    model = MemberAddsIndex(obs_dim=1, action_dim=1, ensemble_size=2, hidden_sizes=(4,))
+    gen = th.Generator().manual_seed(1)
+    nxt, _ = model.propagate(th.zeros(1, 20000, 1), th.zeros(1, 20000, 1), "ds", gen)
+    # particles half at 0 and half at 1: Gaussian with mean 0.5 and std 0.5
+    assert nxt.mean().item() == pytest.approx(0.5, abs=0.02)
+    assert nxt.std().item() == pytest.approx(0.5, abs=0.02)
+
+
+def pendulum_transitions(steps, seed):
+    env = gym.make("Pendulum-v1")
+    env.action_space.seed(seed)
+    obs, _ = env.reset(seed=seed)
+    rows = []
+    for _ in range(steps):
+        action = env.action_space.sample()
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        rows.append((obs, action / 2.0, next_obs, reward))  # scaled action, as in the replay buffer
+        obs = next_obs if not (terminated or truncated) else env.reset()[0]
+    return [th.as_tensor(np.array(col), dtype=th.float32) for col in zip(*rows)]
+
+
+def test_fitted_ensemble_predicts_held_out_pendulum_transitions():
+    th.manual_seed(0)
+    obs, act, nxt, rew = pendulum_transitions(3000, seed=0)
+    test_obs, test_act, test_nxt, _ = pendulum_transitions(500, seed=1)
+    model = ProbabilisticEnsemble(3, 1, ensemble_size=5, hidden_sizes=(64, 64, 64))
+    optimizer = th.optim.Adam(model.parameters(), lr=1e-3)
+    gen = th.Generator().manual_seed(0)
+    result = model.fit(obs, act, nxt, optimizer, epochs=25, batch_size=32, holdout_ratio=0.1, generator=gen)
+    assert result.holdout_mse < 1e-3
+    with th.no_grad():
+        pred, _ = model.propagate(test_obs.unsqueeze(1), test_act.unsqueeze(1), "expectation")
+    err = ((pred.squeeze(1) - test_nxt) ** 2).mean(dim=0)
+    delta_var = (test_nxt - test_obs).var(dim=0)
+    # explains > 99.5 % of the variance of the change in every dimension
+    assert (err / delta_var < 5e-3).all(), (err / delta_var).tolist()
+
+
+def test_learned_reward_head():
+    th.manual_seed(0)
+    obs, act, nxt, rew = pendulum_transitions(2000, seed=2)
+    model = ProbabilisticEnsemble(3, 1, ensemble_size=3, hidden_sizes=(64, 64), learned_reward=True)
+    optimizer = th.optim.Adam(model.parameters(), lr=1e-3)
+    with pytest.raises(ValueError, match="pass rewards="):
+        model.fit(obs, act, nxt, optimizer)
+    model.fit(obs, act, nxt, optimizer, rewards=rew, epochs=20, generator=th.Generator().manual_seed(0))
+    with th.no_grad():
+        _, pred = model.propagate(obs[:500].unsqueeze(1), act[:500].unsqueeze(1), "expectation")
+    assert pred is not None
+    assert ((pred.squeeze(1) - rew[:500]) ** 2).mean() / rew[:500].var() < 0.02
+
+
+def test_holdout_early_stopping_restores_the_best_parameters():
+    th.manual_seed(0)
+    obs, act, nxt, _ = pendulum_transitions(300, seed=3)
+    model = ProbabilisticEnsemble(3, 1, ensemble_size=2, hidden_sizes=(32,))
+    optimizer = th.optim.Adam(model.parameters(), lr=1e-2)
+    result = model.fit(obs, act, nxt, optimizer, epochs=200, holdout_ratio=0.3, patience=3, generator=th.Generator().manual_seed(0))
+    assert result.epochs < 200  # stopped early
+    assert result.holdout_mse == pytest.approx(result.holdout_mse)  # finite, not nan

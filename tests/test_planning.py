@@ -1,0 +1,116 @@
+"""The CEM core, random shooting and the action-sequence search space, on problems with known answers."""
+
+import math
+
+import pytest
+import torch as th
+
+from sb3_poplin.planning import CEM, ActionSequences, RandomShooting, truncated_normal
+
+
+def identity_constraint(mean, var):
+    return var
+
+
+def quadratic(target):
+    """Return = -||z - target||^2, maximal (0) at the target."""
+
+    def evaluate(z):  # z: [n_envs, N, D], target: [n_envs, D]
+        return -((z - target.unsqueeze(1)) ** 2).sum(dim=-1)
+
+    return evaluate
+
+
+@pytest.mark.parametrize("sampling", ["truncated", "clipped"])
+def test_cem_finds_the_optimum_of_a_quadratic(sampling):
+    gen = th.Generator().manual_seed(0)
+    target = th.tensor([[0.3, -0.5, 0.8, 0.0, -0.2, 0.6], [-0.7, 0.1, 0.0, 0.4, 0.5, -0.3]])  # 2 envs
+    cem = CEM(population_size=400, num_elites=40, iterations=10, alpha=0.1, sampling=sampling)
+    mean, var = th.zeros(2, 6), th.full((2, 6), 0.25)
+    result = cem.optimize(quadratic(target), mean, var, identity_constraint, gen)
+    assert result.solution.shape == (2, 6)
+    assert th.allclose(result.solution, target, atol=0.02)
+    assert (result.elite_return > -1e-3).all()
+
+
+def test_cem_update_is_momentum_on_elite_statistics():
+    """One iteration with alpha: new mean = alpha * old + (1 - alpha) * elite mean (biased elite variance)."""
+    pop, k, alpha = 50, 5, 0.3
+    seen = {}
+
+    def evaluate(z):
+        seen["z"] = z.clone()
+        return -(z**2).sum(-1)
+
+    gen = th.Generator().manual_seed(1)
+    mean, var = th.full((1, 3), 0.5), th.full((1, 3), 0.2)
+    result = CEM(pop, k, iterations=1, alpha=alpha).optimize(evaluate, mean, var, identity_constraint, gen)
+    z = seen["z"][0]
+    elites = z[(-(z**2).sum(-1)).argsort(descending=True)[:k]]
+    expected = alpha * 0.5 + (1 - alpha) * elites.mean(0)
+    assert th.allclose(result.solution[0], expected, atol=1e-6)
+
+
+def test_non_finite_returns_are_never_elites():
+    """NaN and +inf candidates must rank last even though +inf compares highest."""
+
+    def evaluate(z):
+        ret = -((z - 1.0) ** 2).sum(-1)
+        ret = th.where(z[..., 0] > 0.0, th.full_like(ret, math.inf), ret)  # every candidate with z0 > 0 "diverges"
+        return th.where(z[..., 1] > 0.0, th.full_like(ret, math.nan), ret)
+
+    gen = th.Generator().manual_seed(2)
+    cem = CEM(300, 30, iterations=8, alpha=0.0)
+    result = cem.optimize(evaluate, th.zeros(1, 2), th.full((1, 2), 0.25), identity_constraint, gen)
+    # the best finite region is z0 <= 0, z1 <= 0, as close to (1, 1) as possible: near (0, 0)
+    assert (result.solution <= 0.05).all()
+    assert th.isfinite(result.elite_return).all()
+
+
+def test_cem_keeps_the_distribution_when_nothing_is_finite():
+    gen = th.Generator().manual_seed(3)
+    mean = th.tensor([[0.2, -0.1]])
+    result = CEM(20, 5, iterations=3).optimize(
+        lambda z: th.full(z.shape[:2], math.nan), mean, th.full((1, 2), 0.1), identity_constraint, gen
+    )
+    assert th.equal(result.solution, mean)
+
+
+def test_random_shooting_returns_its_best_sample():
+    gen = th.Generator().manual_seed(4)
+    target = th.tensor([[0.5, -0.5, 0.25]])
+    seen = {}
+
+    def evaluate(z):
+        seen["z"] = z.clone()
+        return quadratic(target)(z)
+
+    result = RandomShooting(2000).optimize(evaluate, th.zeros(1, 3), th.ones(1, 3), identity_constraint, gen)
+    z = seen["z"][0]
+    best = z[quadratic(target)(z.unsqueeze(0))[0].argmax()]
+    assert th.equal(result.solution[0], best)
+    assert (z.abs() <= 1.0).all() and z.min() < -0.9 and z.max() > 0.9  # uniform over the whole box
+
+
+def test_truncated_normal_bounds_and_moments():
+    x = truncated_normal((200_000,), th.device("cpu"), th.Generator().manual_seed(5))
+    assert x.abs().max() <= 2.0
+    assert abs(x.mean().item()) < 0.01
+    # variance of a standard normal truncated at +-2
+    phi2 = math.exp(-2.0) / math.sqrt(2 * math.pi)
+    z = math.erf(2 / math.sqrt(2))
+    assert x.var().item() == pytest.approx(1 - 4 * phi2 / z, abs=0.01)
+
+
+def test_action_sequences_shift_cap_and_decode():
+    space = ActionSequences(horizon=3, action_dim=2, init_var=0.25)
+    assert space.dim == 6
+    mean = th.tensor([[0.1, 0.2, 0.3, 0.4, 0.5, 0.6]])
+    assert th.equal(space.shift(mean), th.tensor([[0.3, 0.4, 0.5, 0.6, 0.0, 0.0]]))
+    capped = space.constrain_var(th.tensor([[0.0, 0.8, -1.0]]), th.full((1, 3), 0.25))
+    assert th.allclose(capped, th.tensor([[0.25, 0.01, 0.0]]))  # 2 sigma stays inside [-1, 1]
+    z = th.tensor([[[1.5, -0.5, 0.0, 0.0, 0.0, 0.0]]])  # [n_envs=1, N=1, D]
+    states = th.zeros(1, 1, 4, 3)  # 4 particles
+    actions = space.actions(z, 0, states, None)
+    assert actions.shape == (1, 1, 4, 2) and th.equal(actions[0, 0, 0], th.tensor([1.0, -0.5]))
+    assert th.equal(space.executed_action(mean, th.zeros(1, 3), None), th.tensor([[0.1, 0.2]]))

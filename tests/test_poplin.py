@@ -1,0 +1,179 @@
+"""The POPLIN algorithm through the SB3 API: input checks, predict, save/load, logging, variants."""
+
+import csv
+import os
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import configure
+
+from sb3_poplin import POPLIN
+
+TINY = dict(
+    horizon=5,
+    population_size=20,
+    num_elites=4,
+    cem_iterations=2,
+    ensemble_size=2,
+    dynamics_net_arch=(16, 16),
+    model_epochs=2,
+)
+
+
+def tiny(variant="pets", env="Pendulum-v1", **kwargs):
+    return POPLIN(variant, env, seed=0, **{**TINY, **kwargs})
+
+
+# ---------------------------------------------------------------- bad input
+def test_discrete_action_space_is_rejected():
+    with pytest.raises(ValueError, match="Box action space.*Discrete"):
+        POPLIN("pets", "CartPole-v1")
+
+
+def test_unknown_variant_is_rejected():
+    with pytest.raises(ValueError, match=r"Unknown POPLIN variant 'petz'; accepted values: \['pets', 'rs'"):
+        POPLIN("petz", "Pendulum-v1")
+
+
+def test_more_elites_than_population_is_rejected():
+    with pytest.raises(ValueError, match=r"num_elites must be between 1 and population_size \(10\), got 11"):
+        POPLIN("pets", "Pendulum-v1", population_size=10, num_elites=11)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(horizon=0), "horizon must be an integer >= 1"),
+        (dict(cem_alpha=1.0), r"cem_alpha must be in \[0, 1\)"),
+        (dict(init_var=0.0), "init_var must be > 0"),
+        (dict(propagation="mean"), r"Unknown propagation 'mean'; accepted values: \['expectation'"),
+        (dict(propagation="tsinf", num_particles=7), "multiple of ensemble_size"),
+        (dict(cem_sampling="uniform"), "Unknown cem_sampling"),
+    ],
+)
+def test_bad_settings_are_rejected(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        POPLIN("pets", "Pendulum-v1", **kwargs)
+
+
+def test_policy_control_needs_a_policy_network():
+    model = tiny()
+    with pytest.raises(ValueError, match="no policy network"):
+        model.control = "policy"
+    with pytest.raises(ValueError, match="Unknown control 'plan'"):
+        model.control = "plan"
+
+
+def test_wrong_observation_shape_is_rejected():
+    model = tiny()
+    with pytest.raises(ValueError, match="observation"):
+        model.predict(np.zeros(5, dtype=np.float32))
+
+
+# ---------------------------------------------------------------- acting
+def test_predict_single_and_batched_in_one_plan():
+    model = tiny()
+    calls = []
+    plan = model.planner.plan
+
+    def counting_plan(obs, mean, generator=None):
+        calls.append(obs.shape[0])
+        return plan(obs, mean, generator)
+
+    model.planner.plan = counting_plan
+    action, state = model.predict(np.zeros(3, dtype=np.float32))
+    assert action.shape == (1,) and state.shape == (1, 5)
+    vec_env = make_vec_env("Pendulum-v1", n_envs=2, seed=0)
+    obs = vec_env.reset()
+    actions, state = model.predict(obs, episode_start=np.ones(2, dtype=bool))
+    assert actions.shape == (2, 1) and calls == [1, 2]  # the two envs were planned in one call
+    assert np.all(np.abs(actions) <= 2.0)
+    assert state.shape == (2, 5)
+    # the returned warm start is the shifted mean: its last step is the action-space centre
+    assert th.all(state[:, -1] == 0)
+
+
+def test_episode_start_resets_only_that_envs_warm_start():
+    model = tiny()
+    obs = np.zeros((2, 3), dtype=np.float32)
+    state = th.full((2, 5), 0.7)
+    seen = {}
+    plan = model.planner.plan
+
+    def spy(obs, mean, generator=None):
+        seen["mean"] = mean.clone()
+        return plan(obs, mean, generator)
+
+    model.planner.plan = spy
+    model.predict(obs, state=state, episode_start=np.array([True, False]))
+    assert th.equal(seen["mean"][0], th.zeros(5)) and th.equal(seen["mean"][1], th.full((5,), 0.7))
+    with pytest.raises(ValueError, match="state has shape"):
+        model.predict(obs, state=th.zeros(3, 5))
+
+
+# ---------------------------------------------------------------- training, logging, variants
+def test_random_warmup_then_planning_and_logger_keys(tmp_path):
+    model = tiny()
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(600)
+    assert model._model_fitted and model._n_updates == 3  # fit after each of the 3 episodes
+    with open(os.path.join(tmp_path, "progress.csv")) as file:
+        rows = list(csv.DictReader(file))
+    keys = set(rows[-1])
+    for key in ("train/model_loss", "train/model_mse", "plan/elite_return", "rollout/ep_rew_mean"):
+        assert key in keys
+    assert float(rows[-1]["train/n_transitions"]) == 600 - 200  # fitted before the last episode was collected
+
+
+def test_random_shooting_trains_and_plans():
+    model = tiny("rs", population_size=64)
+    model.learn(400)
+    assert model._model_fitted
+    action, _ = model.predict(np.array([1.0, 0.0, 0.0], dtype=np.float32))
+    assert action.shape == (1,) and -2.0 <= action[0] <= 2.0
+
+
+def test_inverted_pendulum_with_termination_and_vec_env():
+    env = make_vec_env("InvertedPendulum-v5", n_envs=2, seed=0)
+    model = POPLIN("pets", env, seed=0, **{**TINY, "horizon": 8})
+    assert model.task_id == "InvertedPendulum-v5"
+    assert (model.train_freq.frequency, model.train_freq.unit.value) == (1000, "step")  # one episode length: SB3 counts episodes with one env only
+    model.learn(300)
+    actions, _ = model.predict(env.reset())
+    assert actions.shape == (2, 1) and np.all(np.abs(actions) <= 3.0)
+
+
+def test_learned_reward_fallback_warns_for_unknown_envs():
+    env = gym.make("MountainCarContinuous-v0")
+    with pytest.warns(UserWarning, match="learns the reward.*termination_fn="):
+        model = POPLIN("pets", env, seed=0, **TINY)
+    assert model.learned_reward and model.planner.reward_fn is None
+    model.learn(120, reset_num_timesteps=True)
+
+
+# ---------------------------------------------------------------- save / load
+@pytest.mark.parametrize("variant", ["pets", "rs"])
+def test_save_load_without_env_gives_the_same_actions(tmp_path, variant):
+    model = tiny(variant)
+    model.learn(400)
+    path = tmp_path / "model.zip"
+    model.save(path)
+    loaded = POPLIN.load(path, device="cpu")
+    assert loaded.variant == variant and loaded.task_id == "Pendulum-v1" and loaded._model_fitted
+    for (name, a), (_, b) in zip(model.policy.state_dict().items(), loaded.policy.state_dict().items()):
+        assert th.equal(a, b), name
+    obs = np.array([[np.cos(2.0), np.sin(2.0), 0.5], [1.0, 0.0, 0.0]], dtype=np.float32)
+    model.set_random_seed(7)
+    loaded.set_random_seed(7)
+    start = np.ones(2, dtype=bool)
+    a1, s1 = model.predict(obs, episode_start=start)
+    a2, s2 = loaded.predict(obs, episode_start=start)
+    np.testing.assert_allclose(a1, a2, atol=1e-6)
+    assert th.allclose(s1, s2, atol=1e-6)
+    # and it keeps learning
+    loaded.set_env(make_vec_env("Pendulum-v1", n_envs=1, seed=1))
+    loaded.learn(200, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 600
