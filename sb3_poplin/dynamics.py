@@ -17,6 +17,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
+from itertools import pairwise
 from typing import NamedTuple
 
 import torch as th
@@ -80,6 +81,12 @@ class ProbabilisticEnsemble(nn.Module):
         :func:`default_weight_decays`
     """
 
+    obs_index: th.Tensor
+    input_mean: th.Tensor
+    input_std: th.Tensor
+    target_mean: th.Tensor
+    target_std: th.Tensor
+
     def __init__(
         self,
         obs_dim: int,
@@ -103,7 +110,7 @@ class ProbabilisticEnsemble(nn.Module):
         self.out_dim = obs_dim + int(learned_reward)
 
         sizes = [self.in_dim, *hidden_sizes]
-        self.hidden = nn.ModuleList(EnsembleLinear(ensemble_size, a, b) for a, b in zip(sizes[:-1], sizes[1:]))
+        self.hidden = nn.ModuleList(EnsembleLinear(ensemble_size, a, b) for a, b in pairwise(sizes))
         self.output = EnsembleLinear(ensemble_size, sizes[-1], 2 * self.out_dim)
         decays = default_weight_decays(len(hidden_sizes)) if weight_decays is None else list(weight_decays)
         if len(decays) != len(hidden_sizes) + 1:
@@ -168,7 +175,7 @@ class ProbabilisticEnsemble(nn.Module):
         :param generator: random generator for sampling
         :return: next states ``[N, P, o]`` and, with ``learned_reward``, predicted rewards ``[N, P]``
         """
-        n, p, o = states.shape
+        n, p, _ = states.shape
         e = self.ensemble_size
         x = self.model_input(states, actions)  # [N, P, in]
         if propagation == "expectation":
@@ -203,7 +210,7 @@ class ProbabilisticEnsemble(nn.Module):
         mean, logvar = self(x)
         nll = ((mean - y) ** 2 * th.exp(-logvar) + logvar).mean(dim=(1, 2)).sum()
         layers = [*self.hidden, self.output]
-        decay = sum(c * 0.5 * (layer.weight**2).sum() for c, layer in zip(self.weight_decays, layers))
+        decay = sum(c * 0.5 * (layer.weight**2).sum() for c, layer in zip(self.weight_decays, layers, strict=True))
         bounds = 0.01 * (self.max_logvar.sum() - self.min_logvar.sum())
         return nll + decay + bounds
 

@@ -360,8 +360,9 @@ class POPLIN(OffPolicyAlgorithm):
         """
         if self.control == "policy":
             return self.policy.predict(observation, state, episode_start, deterministic)
-        obs, vectorized = self.policy.obs_to_tensor(observation)
-        obs = obs.float()
+        obs_tensor, vectorized = self.policy.obs_to_tensor(observation)
+        assert isinstance(obs_tensor, th.Tensor)
+        obs = obs_tensor.float()
         n_envs = obs.shape[0]
         space = self.planner.search_space
         internal = state is None and episode_start is None

@@ -87,12 +87,12 @@ def pendulum_transitions(steps, seed):
         next_obs, reward, terminated, truncated, _ = env.step(action)
         rows.append((obs, action / 2.0, next_obs, reward))  # scaled action, as in the replay buffer
         obs = next_obs if not (terminated or truncated) else env.reset()[0]
-    return [th.as_tensor(np.array(col), dtype=th.float32) for col in zip(*rows)]
+    return [th.as_tensor(np.array(col), dtype=th.float32) for col in zip(*rows, strict=True)]
 
 
 def test_fitted_ensemble_predicts_held_out_pendulum_transitions():
     th.manual_seed(0)
-    obs, act, nxt, rew = pendulum_transitions(3000, seed=0)
+    obs, act, nxt, _ = pendulum_transitions(3000, seed=0)
     test_obs, test_act, test_nxt, _ = pendulum_transitions(500, seed=1)
     model = ProbabilisticEnsemble(3, 1, ensemble_size=5, hidden_sizes=(64, 64, 64))
     optimizer = th.optim.Adam(model.parameters(), lr=1e-3)
@@ -126,6 +126,7 @@ def test_holdout_early_stopping_restores_the_best_parameters():
     obs, act, nxt, _ = pendulum_transitions(300, seed=3)
     model = ProbabilisticEnsemble(3, 1, ensemble_size=2, hidden_sizes=(32,))
     optimizer = th.optim.Adam(model.parameters(), lr=1e-2)
-    result = model.fit(obs, act, nxt, optimizer, epochs=200, holdout_ratio=0.3, patience=3, generator=th.Generator().manual_seed(0))
+    gen = th.Generator().manual_seed(0)
+    result = model.fit(obs, act, nxt, optimizer, epochs=200, holdout_ratio=0.3, patience=3, generator=gen)
     assert result.epochs < 200  # stopped early
     assert result.holdout_mse == pytest.approx(result.holdout_mse)  # finite, not nan

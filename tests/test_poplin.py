@@ -29,7 +29,7 @@ def tiny(variant="pets", env="Pendulum-v1", **kwargs):
 
 # ---------------------------------------------------------------- bad input
 def test_discrete_action_space_is_rejected():
-    with pytest.raises(ValueError, match="Box action space.*Discrete"):
+    with pytest.raises(ValueError, match=r"Box action space.*Discrete"):
         POPLIN("pets", "CartPole-v1")
 
 
@@ -140,7 +140,8 @@ def test_inverted_pendulum_with_termination_and_vec_env():
     env = make_vec_env("InvertedPendulum-v5", n_envs=2, seed=0)
     model = POPLIN("pets", env, seed=0, **{**TINY, "horizon": 8})
     assert model.task_id == "InvertedPendulum-v5"
-    assert (model.train_freq.frequency, model.train_freq.unit.value) == (1000, "step")  # one episode length: SB3 counts episodes with one env only
+    # one episode length in steps: SB3 counts episodes with one env only
+    assert (model.train_freq.frequency, model.train_freq.unit.value) == (1000, "step")
     model.learn(300)
     actions, _ = model.predict(env.reset())
     assert actions.shape == (2, 1) and np.all(np.abs(actions) <= 3.0)
@@ -163,7 +164,7 @@ def test_save_load_without_env_gives_the_same_actions(tmp_path, variant):
     model.save(path)
     loaded = POPLIN.load(path, device="cpu")
     assert loaded.variant == variant and loaded.task_id == "Pendulum-v1" and loaded._model_fitted
-    for (name, a), (_, b) in zip(model.policy.state_dict().items(), loaded.policy.state_dict().items()):
+    for (name, a), (_, b) in zip(model.policy.state_dict().items(), loaded.policy.state_dict().items(), strict=True):
         assert th.equal(a, b), name
     obs = np.array([[np.cos(2.0), np.sin(2.0), 0.5], [1.0, 0.0, 0.0]], dtype=np.float32)
     model.set_random_seed(7)

@@ -20,7 +20,7 @@ def random_transitions(env_id: str, steps: int, seed: int = 0) -> dict[str, np.n
     for _ in range(steps):
         action = env.action_space.sample()
         next_obs, reward, terminated, truncated, _ = env.step(action)
-        for key, value in zip(rows, (obs, action, next_obs, reward, terminated)):
+        for key, value in zip(rows, (obs, action, next_obs, reward, terminated), strict=True):
             rows[key].append(value)
         obs = next_obs
         if terminated or truncated:
@@ -56,9 +56,9 @@ def test_pendulum_reward_clips_torque_and_normalises_angle():
 
 
 def test_unknown_task_and_registration():
-    with pytest.raises(ValueError, match="No task is registered for 'NoSuchEnv-v0'.*reward_fn="):
+    with pytest.raises(ValueError, match=r"No task is registered for 'NoSuchEnv-v0'.*reward_fn="):
         make_task("NoSuchEnv-v0")
-    spec = TaskSpec("MyTask-v0", reward_fn=lambda o, a, n: -n[..., 0] ** 2)
+    spec = TaskSpec("MyTask-v0", reward_fn=lambda o, a, n: -(n[..., 0] ** 2))
     register_task(spec)
     assert "MyTask-v0" in registered_tasks() and make_task("MyTask-v0") is spec
     with pytest.raises(ValueError, match="already registered"):
