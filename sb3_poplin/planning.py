@@ -6,7 +6,8 @@ Model-predictive planning: one CEM core, random shooting, search spaces, and one
 - A *search space* says what ``z`` means: its size D, its initial mean and variance, how the mean
   is warm-started between env steps (``shift``), and how ``z`` plus imagined states become
   actions (``actions``) and which action is executed (``executed_action``). PETS searches action
-  sequences (:class:`ActionSequences`); the POPLIN variants search policy noise.
+  sequences (:class:`ActionSequences`); POPLIN-A searches action noise around a policy network's
+  proposals (:class:`PolicyActionNoise`), POPLIN-P noise on its parameters (:class:`PolicyParameterNoise`).
 - :class:`MPCPlanner` owns the rollout loop through the learned model. It never names a variant.
 
 All actions inside the planner are in the scaled space [-1, 1] the replay buffer uses; the task's
@@ -23,10 +24,13 @@ from typing import Any, NamedTuple
 import torch as th
 
 from sb3_poplin.dynamics import ProbabilisticEnsemble
+from sb3_poplin.policies import PolicyNetwork
 from sb3_poplin.tasks import RewardFn, TerminationFn
 
 Evaluate = Callable[[th.Tensor], th.Tensor]
 SAMPLINGS = ("truncated", "clipped")
+PROPOSALS = ("init", "replan")
+NOISES = ("sep", "uni")
 
 # the standard normal CDF at -2 and +2: bounds of the uniform draw for a normal truncated at 2 sigma
 _PHI_MINUS_2 = 0.5 * (1.0 + math.erf(-2.0 / math.sqrt(2.0)))
@@ -44,6 +48,7 @@ class OptimizerResult(NamedTuple):
 
     solution: th.Tensor  # [n_envs, D]: CEM's final mean, or random shooting's best sample
     elite_return: th.Tensor  # [n_envs]: mean return of the final elites (or the best sample)
+    elites: th.Tensor  # [n_envs, K, D]: the final elites (random shooting: the best sample, K = 1)
 
 
 class CEM:
@@ -99,6 +104,7 @@ class CEM:
         """
         n_envs, dim = mean.shape
         elite_return = th.zeros(n_envs, device=mean.device)
+        elites = mean.unsqueeze(1).expand(n_envs, self.num_elites, dim)
         for _ in range(self.iterations):
             std = constrain_var(mean, var).sqrt()
             noise = self._noise((n_envs, self.population_size, dim), mean.device, generator)
@@ -116,7 +122,7 @@ class CEM:
             mean = th.where(has_elites, self.alpha * mean + (1 - self.alpha) * elite_mean, mean)
             var = th.where(has_elites, self.alpha * var + (1 - self.alpha) * elite_var, var)
             elite_return = th.where(valid, top, th.zeros_like(top)).sum(dim=1) / count.squeeze(1)
-        return OptimizerResult(mean, elite_return)
+        return OptimizerResult(mean, elite_return, elites)
 
 
 class RandomShooting:
@@ -147,12 +153,17 @@ class RandomShooting:
         solution = th.take_along_dim(z, best.view(n_envs, 1, 1), dim=1).squeeze(1)
         # with no finite candidate at all, fall back to the incoming mean
         finite = th.isfinite(best_return).unsqueeze(1)
-        return OptimizerResult(th.where(finite, solution, mean), th.where(finite.squeeze(1), best_return, 0.0))
+        solution = th.where(finite, solution, mean)
+        return OptimizerResult(solution, th.where(finite.squeeze(1), best_return, 0.0), solution.unsqueeze(1))
 
 
 class SearchSpace(ABC):
     """
     What the planner searches over. Subclasses define the search vector's size and meaning.
+
+    The search vector is a sequence of per-step blocks of size :attr:`block` (one block per
+    planning step, or a single block shared by all steps). By default the warm start drops the
+    executed step's block and appends a zero block.
 
     :param horizon: planning horizon H
     :param action_dim: action size A
@@ -166,8 +177,17 @@ class SearchSpace(ABC):
 
     @property
     @abstractmethod
+    def block(self) -> int:
+        """Size of the block that drives one planning step."""
+
+    @property
     def dim(self) -> int:
-        """Size D of the search vector."""
+        """Size D of the search vector (one block per planning step by default)."""
+        return self.horizon * self.block
+
+    def first_block(self, solution: th.Tensor) -> th.Tensor:
+        """The block of ``solution [..., D]`` that drives the executed step, ``[..., block]``."""
+        return solution[..., : self.block]
 
     def initial_mean(self, n_envs: int, device: th.device) -> th.Tensor:
         """Mean at an episode start, ``[n_envs, D]`` (zero noise / centred actions)."""
@@ -181,9 +201,9 @@ class SearchSpace(ABC):
         """Variance actually sampled with; the identity unless the space has hard bounds."""
         return var
 
-    @abstractmethod
     def shift(self, mean: th.Tensor) -> th.Tensor:
-        """Warm start for the next env step from the final mean ``[n_envs, D]``."""
+        """Warm start for the next env step from the final mean ``[n_envs, D]``: drop the first block, append zeros."""
+        return th.cat([mean[:, self.block :], th.zeros_like(mean[:, : self.block])], dim=1)
 
     def prepare(self, obs: th.Tensor, planner: MPCPlanner) -> Any:
         """Per-plan context computed once from the real observations ``[n_envs, o]`` (default: none)."""
@@ -213,15 +233,12 @@ class ActionSequences(SearchSpace):
     """
 
     @property
-    def dim(self) -> int:
-        return self.horizon * self.action_dim
+    def block(self) -> int:
+        return self.action_dim
 
     def constrain_var(self, mean: th.Tensor, var: th.Tensor) -> th.Tensor:
         room = th.minimum(mean + 1.0, 1.0 - mean).clamp(min=0.0) / 2.0
         return th.minimum(var, room**2)
-
-    def shift(self, mean: th.Tensor) -> th.Tensor:
-        return th.cat([mean[:, self.action_dim :], th.zeros_like(mean[:, : self.action_dim])], dim=1)
 
     def actions(self, z: th.Tensor, t: int, states: th.Tensor, context: Any) -> th.Tensor:
         a = z[:, :, t * self.action_dim : (t + 1) * self.action_dim].clamp(-1.0, 1.0)  # [n_envs, N, A]
@@ -231,12 +248,107 @@ class ActionSequences(SearchSpace):
         return solution[:, : self.action_dim].clamp(-1.0, 1.0)
 
 
+class PolicyActionNoise(SearchSpace):
+    """
+    POPLIN-A (Wang & Ba 2019, section 4.1): the search vector is additive action noise
+    ``delta_0 .. delta_{H-1}`` around the policy network's proposals, ``D = H * A``.
+
+    - ``proposal="init"``: the policy is rolled open-loop through the model once per plan (mean
+      model, from the real observation); candidate step t plays ``clip(a_ref_t + delta_t)``.
+    - ``proposal="replan"``: the policy is re-queried on every imagined state; step t plays
+      ``clip(pi(s_t) + delta_t)``.
+
+    The executed action is ``clip(pi(s) + mu_0)``. No bound-aware variance cap (as in the paper;
+    actions are clipped instead).
+
+    :param policy: the policy network
+    :param proposal: ``"init"`` or ``"replan"``
+    """
+
+    def __init__(self, horizon: int, action_dim: int, init_var: float, policy: PolicyNetwork, proposal: str) -> None:
+        super().__init__(horizon, action_dim, init_var)
+        if proposal not in PROPOSALS:
+            raise ValueError(f"Unknown POPLIN-A proposal {proposal!r}; accepted values: {list(PROPOSALS)}")
+        self.policy = policy
+        self.proposal = proposal
+
+    @property
+    def block(self) -> int:
+        return self.action_dim
+
+    def prepare(self, obs: th.Tensor, planner: MPCPlanner) -> th.Tensor | None:
+        if self.proposal != "init":
+            return None
+        states, proposals = obs.unsqueeze(1), []  # [n_envs, 1, o]
+        for _ in range(self.horizon):
+            action = self.policy.act(states)  # [n_envs, 1, A]
+            proposals.append(action[:, 0])
+            states, _ = planner.model.propagate(states, action, "expectation")
+        return th.stack(proposals, dim=1)  # [n_envs, H, A]
+
+    def actions(self, z: th.Tensor, t: int, states: th.Tensor, context: th.Tensor | None) -> th.Tensor:
+        delta = z[:, :, t * self.action_dim : (t + 1) * self.action_dim]  # [n_envs, N, A]
+        if context is not None:  # open-loop reference actions
+            a = (context[:, t].unsqueeze(1) + delta).clamp(-1.0, 1.0)
+            return a.unsqueeze(2).expand(-1, -1, states.shape[2], -1)
+        return (self.policy.act(states) + delta.unsqueeze(2)).clamp(-1.0, 1.0)  # [n_envs, N, P, A]
+
+    def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
+        return (self.policy.act(obs) + solution[:, : self.action_dim]).clamp(-1.0, 1.0)
+
+
+class PolicyParameterNoise(SearchSpace):
+    """
+    POPLIN-P (Wang & Ba 2019, section 4.2): the search vector perturbs the policy network's
+    parameters, ``omega`` in the flat layout of :class:`PolicyNetwork` (size W). Every candidate
+    runs its own network ``pi_{theta + omega}`` on its imagined states.
+
+    - ``noise="sep"``: one block per planning step, ``D = H * W``; the warm start shifts by a block.
+    - ``noise="uni"``: one block shared by all steps, ``D = W``; the warm start keeps the mean unchanged.
+
+    The executed action is ``clip(pi_{theta + mu_0}(s))``.
+
+    :param policy: the policy network
+    :param noise: ``"sep"`` or ``"uni"``
+    """
+
+    def __init__(self, horizon: int, action_dim: int, init_var: float, policy: PolicyNetwork, noise: str) -> None:
+        super().__init__(horizon, action_dim, init_var)
+        if noise not in NOISES:
+            raise ValueError(f"Unknown POPLIN-P noise {noise!r}; accepted values: {list(NOISES)}")
+        self.policy = policy
+        self.noise = noise
+
+    @property
+    def block(self) -> int:
+        return self.policy.num_params
+
+    @property
+    def dim(self) -> int:
+        return self.horizon * self.block if self.noise == "sep" else self.block
+
+    def shift(self, mean: th.Tensor) -> th.Tensor:
+        return super().shift(mean) if self.noise == "sep" else mean
+
+    def actions(self, z: th.Tensor, t: int, states: th.Tensor, context: Any) -> th.Tensor:
+        n_envs, pop, p, o = states.shape
+        w = self.block
+        omega = z[:, :, t * w : (t + 1) * w] if self.noise == "sep" else z  # [n_envs, N, W]
+        a = self.policy.forward_perturbed(states.reshape(n_envs * pop, p, o), omega.reshape(n_envs * pop, w))
+        return a.clamp(-1.0, 1.0).view(n_envs, pop, p, -1)
+
+    def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
+        return self.policy.forward_perturbed(obs.unsqueeze(1), self.first_block(solution))[:, 0].clamp(-1.0, 1.0)
+
+
 class PlanResult(NamedTuple):
     """One plan for a batch of envs."""
 
     action: th.Tensor  # [n_envs, A] scaled action to execute
     next_mean: th.Tensor  # [n_envs, D] warm start for the next env step
     elite_return: th.Tensor  # [n_envs] planned return of the final elites
+    solution: th.Tensor  # [n_envs, D] the optimizer's solution (CEM: final mean)
+    elites: th.Tensor  # [n_envs, K, D] the final elites
 
 
 class MPCPlanner:
@@ -336,4 +448,6 @@ class MPCPlanner:
             generator,
         )
         action = self.search_space.executed_action(result.solution, obs, context)
-        return PlanResult(action, self.search_space.shift(result.solution), result.elite_return)
+        return PlanResult(
+            action, self.search_space.shift(result.solution), result.elite_return, result.solution, result.elites
+        )

@@ -1,23 +1,171 @@
 """
-The SB3 policy object of POPLIN: the container of every trained network and its optimizer.
+Networks of POPLIN and the SB3 policy object that holds them.
 
-:class:`POPLINPolicy` holds the dynamics ensemble (``dynamics``, with its normalisers as buffers)
-and its optimizer, so that SB3's save/load, ``get_parameters`` and device moves cover them. MPC
-control lives in the algorithm (it needs the warm-start state and the task); the policy's own
-``predict`` is policy control, which PETS and random shooting do not have.
+- :class:`PolicyNetwork`: the tanh MLP of POPLIN (Wang & Ba 2019, section 4), with input whitening
+  from the real states seen so far and a linear output in the scaled action space (clipped to
+  [-1, 1] when acting, then mapped to the env bounds). Its parameters have one flat layout
+  (``W_0`` as ``[in, out]`` row-major, ``b_0``, ``W_1``, ``b_1``, ...), which is the space POPLIN-P
+  perturbs; :meth:`PolicyNetwork.forward_perturbed` runs a batch in which every row carries its
+  own perturbation, as one batched matmul per layer.
+- :class:`POPLINPolicy`: the SB3 container of every trained network (dynamics ensemble, policy
+  network, GAN discriminator) and their optimizers, so that SB3's save/load, ``get_parameters``
+  and device moves cover them. MPC control lives in the algorithm (it needs the warm-start state
+  and the task); the policy's own ``predict`` is policy control.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from itertools import pairwise
 from typing import Any
 
 import torch as th
+import torch.nn.functional as F
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
 
 from sb3_poplin.dynamics import ProbabilisticEnsemble
+
+# whitening: variance floored at 1e-2 (std >= 0.1), as in the original code
+MIN_WHITENING_VAR = 1e-2
+
+
+class PolicyNetwork(nn.Module):
+    """
+    POPLIN's policy MLP: whitened observation -> action in the scaled space (linear output).
+
+    :param obs_dim: observation size
+    :param action_dim: action size
+    :param net_arch: hidden widths (tanh)
+    :param input_exclude: observation indices the policy does not see (e.g. the x position)
+    """
+
+    obs_index: th.Tensor
+    obs_mean: th.Tensor
+    obs_var: th.Tensor
+    obs_count: th.Tensor
+
+    def __init__(self, obs_dim: int, action_dim: int, net_arch: Sequence[int], input_exclude: Sequence[int] = ()) -> None:
+        super().__init__()
+        kept = [i for i in range(obs_dim) if i not in set(input_exclude)]
+        self.register_buffer("obs_index", th.tensor(kept, dtype=th.long), persistent=False)
+        self.in_dim, self.action_dim = len(kept), action_dim
+        sizes = [self.in_dim, *net_arch, action_dim]
+        self.shapes = list(pairwise(sizes))
+        self.weights = nn.ParameterList(nn.Parameter(th.empty(a, b)) for a, b in self.shapes)
+        self.biases = nn.ParameterList(nn.Parameter(th.zeros(b)) for _, b in self.shapes)
+        # "normc" initialisation: each unit's incoming weight vector has norm 1 (0.01 on the output layer)
+        for i, weight in enumerate(self.weights):
+            scale = 0.01 if i == len(self.shapes) - 1 else 1.0
+            with th.no_grad():
+                weight.normal_()
+                weight.mul_(scale / weight.norm(dim=0, keepdim=True))
+        self.register_buffer("obs_mean", th.zeros(self.in_dim))
+        self.register_buffer("obs_var", th.ones(self.in_dim))
+        self.register_buffer("obs_count", th.zeros(()))
+
+    @property
+    def num_params(self) -> int:
+        """Size W of the flat parameter vector (every layer's weights and biases)."""
+        return sum(a * b + b for a, b in self.shapes)
+
+    def flat_parameters(self) -> th.Tensor:
+        """The parameters as one vector ``[W]`` in the flat layout."""
+        return th.cat([t for w, b in zip(self.weights, self.biases, strict=True) for t in (w.reshape(-1), b)])
+
+    @th.no_grad()
+    def add_to_parameters(self, delta: th.Tensor) -> None:
+        """``theta <- theta + delta`` for a flat ``delta [W]``."""
+        offset = 0
+        for weight, bias in zip(self.weights, self.biases, strict=True):
+            weight.add_(delta[offset : offset + weight.numel()].view_as(weight))
+            offset += weight.numel()
+            bias.add_(delta[offset : offset + bias.numel()])
+            offset += bias.numel()
+
+    def whiten(self, obs: th.Tensor) -> th.Tensor:
+        """Whitened policy input from raw observations ``[..., o]``."""
+        std = self.obs_var.clamp(min=MIN_WHITENING_VAR).sqrt()
+        return (obs.index_select(-1, self.obs_index) - self.obs_mean) / std
+
+    @th.no_grad()
+    def update_whitening(self, obs: th.Tensor) -> None:
+        """
+        Add real states ``[B, o]`` to the running whitening statistics, and re-express the first
+        layer so that the network computes exactly the same function as before.
+        """
+        if obs.shape[0] == 0:
+            return
+        x = obs.index_select(-1, self.obs_index)
+        old_std = self.obs_var.clamp(min=MIN_WHITENING_VAR).sqrt()
+        old_mean = self.obs_mean.clone()
+        n, m = self.obs_count, float(x.shape[0])
+        batch_mean, batch_var = x.mean(dim=0), x.var(dim=0, unbiased=False)
+        total = n + m
+        delta = batch_mean - self.obs_mean
+        self.obs_mean.add_(delta * m / total)
+        self.obs_var.copy_((self.obs_var * n + batch_var * m + delta**2 * n * m / total) / total)
+        self.obs_count.copy_(total)
+        new_std = self.obs_var.clamp(min=MIN_WHITENING_VAR).sqrt()
+        # (x - m_old) / s_old = (x_new * s_new + m_new - m_old) / s_old, x_new = (x - m_new) / s_new
+        self.biases[0].add_(((self.obs_mean - old_mean) / old_std) @ self.weights[0])
+        self.weights[0].mul_((new_std / old_std).unsqueeze(1))
+
+    def forward(self, obs: th.Tensor) -> th.Tensor:
+        """Unclipped scaled action ``[..., A]`` of raw observations ``[..., o]``."""
+        x = self.whiten(obs)
+        for i, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
+            x = th.addmm(bias, x.reshape(-1, x.shape[-1]), weight).view(*x.shape[:-1], -1)
+            if i < len(self.shapes) - 1:
+                x = th.tanh(x)
+        return x
+
+    def forward_perturbed(self, obs: th.Tensor, noise: th.Tensor) -> th.Tensor:
+        """
+        Every row with its own parameters ``theta + noise[r]``: one batched matmul per layer.
+
+        :param obs: raw observations ``[R, P, o]`` (P particles share their row's parameters)
+        :param noise: flat perturbations ``[R, W]``
+        :return: unclipped scaled actions ``[R, P, A]``
+        """
+        x = self.whiten(obs)  # [R, P, in]
+        rows, offset = noise.shape[0], 0
+        for i, ((d_in, d_out), weight, bias) in enumerate(zip(self.shapes, self.weights, self.biases, strict=True)):
+            w = weight + noise[:, offset : offset + d_in * d_out].view(rows, d_in, d_out)  # [R, in, out]
+            offset += d_in * d_out
+            b = bias + noise[:, offset : offset + d_out].view(rows, 1, d_out)  # [R, 1, out]
+            offset += d_out
+            x = th.baddbmm(b, x, w)  # [R, P, out]
+            if i < len(self.shapes) - 1:
+                x = th.tanh(x)
+        return x
+
+    def act(self, obs: th.Tensor) -> th.Tensor:
+        """Scaled action clipped to [-1, 1]."""
+        return self.forward(obs).clamp(-1.0, 1.0)
+
+
+class Discriminator(nn.Module):
+    """
+    GAN distillation's discriminator (POPLIN-P GAN): MLP on ``[action, whitened state]`` with
+    leaky-ReLU hidden layers and one logit.
+
+    :param input_dim: action size + policy input size
+    :param net_arch: hidden widths
+    """
+
+    def __init__(self, input_dim: int, net_arch: Sequence[int] = (64, 64)) -> None:
+        super().__init__()
+        sizes = [input_dim, *net_arch, 1]
+        self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in pairwise(sizes))
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        """Logits ``[B]`` of ``[B, input_dim]`` inputs."""
+        for layer in self.layers[:-1]:
+            x = F.leaky_relu(layer(x))
+        return self.layers[-1](x).squeeze(-1)
 
 
 class POPLINPolicy(BasePolicy):
@@ -26,13 +174,16 @@ class POPLINPolicy(BasePolicy):
 
     :param observation_space: flat Box observation space
     :param action_space: Box action space
-    :param lr_schedule: unused (SB3 interface); the model has its own learning rate
+    :param lr_schedule: unused (SB3 interface); the networks have their own learning rates
     :param ensemble_size: members of the dynamics ensemble
     :param dynamics_net_arch: hidden layer widths of each member
-    :param model_input_exclude: observation indices the model does not see as inputs
+    :param model_input_exclude: observation indices the model and the policy do not see as inputs
     :param learned_reward: the ensemble also predicts the reward
     :param model_learning_rate: Adam learning rate of the dynamics model
     :param model_weight_decays: L2 coefficient per layer, ``None`` for the paper's
+    :param policy_net_arch: hidden widths of the policy network; ``None``: no policy network (PETS, RS)
+    :param policy_learning_rate: Adam learning rate of the policy network (and the discriminator)
+    :param discriminator_net_arch: hidden widths of the GAN discriminator; ``None``: no discriminator
     """
 
     def __init__(
@@ -46,18 +197,25 @@ class POPLINPolicy(BasePolicy):
         learned_reward: bool = False,
         model_learning_rate: float = 1e-3,
         model_weight_decays: Sequence[float] | None = None,
+        policy_net_arch: Sequence[int] | None = None,
+        policy_learning_rate: float = 3e-3,
+        discriminator_net_arch: Sequence[int] | None = None,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=True)
         assert isinstance(observation_space, spaces.Box) and isinstance(action_space, spaces.Box)
+        obs_dim, action_dim = int(observation_space.shape[0]), int(action_space.shape[0])
         self.ensemble_size = ensemble_size
         self.dynamics_net_arch = list(dynamics_net_arch)
         self.model_input_exclude = list(model_input_exclude)
         self.learned_reward = learned_reward
         self.model_learning_rate = model_learning_rate
         self.model_weight_decays = None if model_weight_decays is None else list(model_weight_decays)
+        self.policy_net_arch = None if policy_net_arch is None else list(policy_net_arch)
+        self.policy_learning_rate = policy_learning_rate
+        self.discriminator_net_arch = None if discriminator_net_arch is None else list(discriminator_net_arch)
         self.dynamics = ProbabilisticEnsemble(
-            obs_dim=int(observation_space.shape[0]),
-            action_dim=int(action_space.shape[0]),
+            obs_dim=obs_dim,
+            action_dim=action_dim,
             ensemble_size=ensemble_size,
             hidden_sizes=self.dynamics_net_arch,
             input_exclude=self.model_input_exclude,
@@ -65,6 +223,24 @@ class POPLINPolicy(BasePolicy):
             weight_decays=self.model_weight_decays,
         )
         self.dynamics_optimizer = th.optim.Adam(self.dynamics.parameters(), lr=model_learning_rate)
+        self.actor: PolicyNetwork | None = None
+        self.discriminator: Discriminator | None = None
+        if self.policy_net_arch is not None:
+            self.actor = PolicyNetwork(obs_dim, action_dim, self.policy_net_arch, self.model_input_exclude)
+            self.actor_optimizer = th.optim.Adam(self.actor.parameters(), lr=policy_learning_rate)
+        if self.discriminator_net_arch is not None:
+            assert self.actor is not None, "the GAN discriminator needs a policy network"
+            self.discriminator = Discriminator(action_dim + self.actor.in_dim, self.discriminator_net_arch)
+            self.discriminator_optimizer = th.optim.Adam(self.discriminator.parameters(), lr=policy_learning_rate)
+
+    def optimizer_names(self) -> list[str]:
+        """Attribute paths (from the algorithm) of every optimizer this policy holds, for SB3's save."""
+        names = ["policy.dynamics_optimizer"]
+        if self.actor is not None:
+            names.append("policy.actor_optimizer")
+        if self.discriminator is not None:
+            names.append("policy.discriminator_optimizer")
+        return names
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -75,6 +251,9 @@ class POPLINPolicy(BasePolicy):
             learned_reward=self.learned_reward,
             model_learning_rate=self.model_learning_rate,
             model_weight_decays=self.model_weight_decays,
+            policy_net_arch=self.policy_net_arch,
+            policy_learning_rate=self.policy_learning_rate,
+            discriminator_net_arch=self.discriminator_net_arch,
         )
         return data
 
@@ -82,7 +261,11 @@ class POPLINPolicy(BasePolicy):
         return self._predict(obs, deterministic)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = True) -> th.Tensor:
-        raise ValueError(
-            "This agent has no policy network (PETS and random shooting plan every action): "
-            "use control='mpc', or a 'poplin-a' / 'poplin-p' agent for policy control."
-        )
+        """Policy control: the policy network's action in [-1, 1] (SB3 maps it to the env bounds)."""
+        if self.actor is None:
+            raise ValueError(
+                "This agent has no policy network (PETS and random shooting plan every action): "
+                "use control='mpc', or a 'poplin-a' / 'poplin-p' agent for policy control."
+            )
+        assert isinstance(observation, th.Tensor)
+        return self.actor.act(observation.float())

@@ -14,7 +14,9 @@ all data and collect the next period with MPC.
 
 from __future__ import annotations
 
+import io
 import math
+import pathlib
 import warnings
 from collections.abc import Sequence
 from typing import Any, ClassVar, TypeVar
@@ -30,16 +32,33 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_poplin.distillation import DISTILLATIONS, average_perturbation, behaviour_cloning, gan_distillation
 from sb3_poplin.dynamics import PROPAGATIONS
-from sb3_poplin.planning import CEM, SAMPLINGS, ActionSequences, MPCPlanner, RandomShooting, SearchSpace
+from sb3_poplin.planning import (
+    CEM,
+    NOISES,
+    PROPOSALS,
+    SAMPLINGS,
+    ActionSequences,
+    MPCPlanner,
+    PolicyActionNoise,
+    PolicyParameterNoise,
+    RandomShooting,
+    SearchSpace,
+)
 from sb3_poplin.policies import POPLINPolicy
 from sb3_poplin.tasks import RewardFn, TerminationFn, has_task, make_task
 
 SelfPOPLIN = TypeVar("SelfPOPLIN", bound="POPLIN")
 
 CONTROLS = ("mpc", "policy")
-# variant -> initial CEM variance of its search space
-DEFAULT_INIT_VAR = {"pets": 0.25, "rs": 0.25}
+# variant -> initial CEM variance of its search space (the paper's demo settings)
+DEFAULT_INIT_VAR = {"pets": 0.25, "rs": 0.25, "poplin-a": 0.25, "poplin-p": 0.1}
+# variant -> default hidden widths of the policy network (None: the variant has none)
+DEFAULT_POLICY_NET_ARCH: dict[str, list[int] | None] = {"pets": None, "rs": None, "poplin-a": [64, 64], "poplin-p": [32]}
+# variant -> distill the final elites too ("imagined" data: BC-AI for POPLIN-A, as in the paper's demos)
+DEFAULT_DISTILL_IMAGINED = {"pets": False, "rs": False, "poplin-a": True, "poplin-p": False}
+GAN_DISCRIMINATOR_NET_ARCH = [64, 64]
 
 
 def _env_id(env: GymEnv | str | None) -> str | None:
@@ -88,11 +107,13 @@ def _check_spaces(env: GymEnv | None) -> None:
 
 class POPLIN(OffPolicyAlgorithm):
     """
-    Model-based planning with a learned probabilistic ensemble: PETS, random shooting, and
-    (in a later release) POPLIN-A / POPLIN-P. Paper: https://arxiv.org/abs/1906.08649
-    (Wang & Ba, 2019); PETS: https://arxiv.org/abs/1805.12114 (Chua et al., 2018).
+    Model-based planning with a learned probabilistic ensemble: POPLIN-A, POPLIN-P, and the PETS
+    and random-shooting baselines. Paper: https://arxiv.org/abs/1906.08649 (Wang & Ba, 2019);
+    PETS: https://arxiv.org/abs/1805.12114 (Chua et al., 2018).
 
-    :param policy: the variant: ``"pets"`` (CEM over action sequences) or ``"rs"`` (random shooting)
+    :param policy: the variant: ``"pets"`` (CEM over action sequences), ``"rs"`` (random shooting),
+        ``"poplin-a"`` (CEM over action noise around a policy network's proposals) or ``"poplin-p"``
+        (CEM over noise on the policy network's parameters)
     :param env: env id or (Vec)Env with a Box action space and a flat Box observation space
     :param horizon: planning horizon H
     :param population_size: candidates per CEM iteration (random shooting: the number of samples)
@@ -100,8 +121,21 @@ class POPLIN(OffPolicyAlgorithm):
     :param cem_iterations: CEM iterations per env step
     :param cem_alpha: CEM momentum: ``new = alpha * old + (1 - alpha) * elite``, in [0, 1)
     :param init_var: initial CEM variance of the search space; ``None`` for the variant default
-        (PETS 0.25, in scaled action units)
+        (PETS and POPLIN-A 0.25, in scaled action units; POPLIN-P 0.1, in parameter units)
     :param cem_sampling: ``"truncated"`` (normal truncated at 2 sigma) or ``"clipped"``
+    :param proposal: POPLIN-A only: ``"init"`` (policy rolled open-loop through the model once per plan)
+        or ``"replan"`` (policy re-queried on every imagined state)
+    :param noise: POPLIN-P only: ``"sep"`` (one parameter-noise block per planning step) or ``"uni"``
+        (one block shared by all steps)
+    :param distillation: how the policy network learns from the planner after each episode:
+        POPLIN-A ``"bc"``; POPLIN-P ``"avg"`` (default), ``"bc"`` or ``"gan"``; ``None`` for the default
+    :param distill_imagined: also distill the final CEM elites' first steps ("imagined" data);
+        ``None``: POPLIN-A yes (BC-AI), POPLIN-P no
+    :param policy_net_arch: hidden widths of the policy network (tanh); ``None``: POPLIN-A [64, 64], POPLIN-P [32]
+    :param policy_learning_rate: Adam learning rate of the policy network (and the GAN discriminator)
+    :param policy_epochs: maximum BC epochs per distillation (early stopping on a 20 % holdout), or GAN epochs
+        (``None``: BC 100, GAN 40)
+    :param policy_batch_size: minibatch size of the distillation
     :param ensemble_size: members of the dynamics ensemble
     :param dynamics_net_arch: hidden widths of each member (swish)
     :param propagation: ``"expectation"`` (mean over members, no particles), ``"ts1"``, ``"tsinf"``
@@ -121,7 +155,8 @@ class POPLIN(OffPolicyAlgorithm):
     :param train_freq: when the model is refit; ``None``: after every episode, or with several envs
         after every episode length's worth of steps
     :param buffer_size: replay buffer size
-    :param control: ``"mpc"`` (plan every action with the model); policy control comes with POPLIN-A/P
+    :param control: what ``predict`` does: ``"mpc"`` plans every action with the model; ``"policy"`` runs the
+        policy network alone (POPLIN-A/P only). Training always collects data with MPC.
     :param stats_window_size: window for rollout logging averages
     :param tensorboard_log: tensorboard log folder
     :param verbose: 0 none, 1 training info, 2 debug
@@ -130,7 +165,12 @@ class POPLIN(OffPolicyAlgorithm):
     :param _init_setup_model: build the networks at construction (SB3 interface)
     """
 
-    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"pets": POPLINPolicy, "rs": POPLINPolicy}
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "pets": POPLINPolicy,
+        "rs": POPLINPolicy,
+        "poplin-a": POPLINPolicy,
+        "poplin-p": POPLINPolicy,
+    }
     policy: POPLINPolicy
 
     def __init__(
@@ -144,6 +184,14 @@ class POPLIN(OffPolicyAlgorithm):
         cem_alpha: float = 0.1,
         init_var: float | None = None,
         cem_sampling: str = "truncated",
+        proposal: str = "init",
+        noise: str = "sep",
+        distillation: str | None = None,
+        distill_imagined: bool | None = None,
+        policy_net_arch: Sequence[int] | None = None,
+        policy_learning_rate: float = 3e-3,
+        policy_epochs: int | None = None,
+        policy_batch_size: int = 64,
         ensemble_size: int = 5,
         dynamics_net_arch: Sequence[int] = (200, 200, 200, 200),
         propagation: str = "expectation",
@@ -184,6 +232,14 @@ class POPLIN(OffPolicyAlgorithm):
         self.cem_alpha = cem_alpha
         self.init_var = init_var
         self.cem_sampling = cem_sampling
+        self.proposal = proposal
+        self.noise = noise
+        self.distillation = distillation
+        self.distill_imagined = distill_imagined
+        self.policy_net_arch = None if policy_net_arch is None else list(policy_net_arch)
+        self.policy_learning_rate = policy_learning_rate
+        self.policy_epochs = policy_epochs
+        self.policy_batch_size = policy_batch_size
         self.ensemble_size = ensemble_size
         self.dynamics_net_arch = list(dynamics_net_arch)
         self.propagation = propagation
@@ -198,6 +254,7 @@ class POPLIN(OffPolicyAlgorithm):
         self._model_fitted = False
         if _init_setup_model:
             self._check_settings()
+            self._resolve_variant_defaults()
         self._control = "mpc"
 
         default_train_freq = train_freq is None
@@ -254,6 +311,42 @@ class POPLIN(OffPolicyAlgorithm):
             )
         if not 0.0 <= self.holdout_ratio < 1.0:
             raise ValueError(f"holdout_ratio must be in [0, 1), got {self.holdout_ratio}")
+        self._check_policy_settings()
+
+    def _check_policy_settings(self) -> None:
+        if self.proposal not in PROPOSALS:
+            raise ValueError(f"Unknown proposal {self.proposal!r} (POPLIN-A); accepted values: {list(PROPOSALS)}")
+        if self.noise not in NOISES:
+            raise ValueError(f"Unknown noise {self.noise!r} (POPLIN-P); accepted values: {list(NOISES)}")
+        accepted = DISTILLATIONS.get(self.variant, ())
+        if self.distillation is not None and self.distillation not in accepted:
+            if not accepted:
+                raise ValueError(
+                    f"The {self.variant!r} variant has no policy network to distill into; got distillation="
+                    f"{self.distillation!r}. Leave distillation=None, or use 'poplin-a' / 'poplin-p'."
+                )
+            raise ValueError(
+                f"Unknown distillation {self.distillation!r} for {self.variant!r}; accepted values: {list(accepted)}"
+            )
+        for name in ("policy_epochs", "policy_batch_size"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, (int, np.integer)) or value < 1):
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+
+    def _resolve_variant_defaults(self) -> None:
+        """Resolve every ``None`` default that depends on the variant, in one place."""
+        if self.distillation is None and self.variant in DISTILLATIONS:
+            self.distillation = DISTILLATIONS[self.variant][0]
+        if self.policy_net_arch is None:
+            self.policy_net_arch = DEFAULT_POLICY_NET_ARCH[self.variant]
+        elif self.variant in ("pets", "rs"):
+            raise ValueError(f"The {self.variant!r} variant has no policy network: leave policy_net_arch=None.")
+        if self.distill_imagined is None:
+            self.distill_imagined = DEFAULT_DISTILL_IMAGINED[self.variant]
+        if self.policy_epochs is None:
+            self.policy_epochs = 40 if self.distillation == "gan" else 100
+        if self.init_var is None:
+            self.init_var = DEFAULT_INIT_VAR[self.variant]
 
     @property
     def control(self) -> str:
@@ -289,8 +382,15 @@ class POPLIN(OffPolicyAlgorithm):
         return (None if self.learned_reward else reward_fn), termination_fn, tuple(exclude)
 
     def _make_search_space(self) -> SearchSpace:
-        init_var = DEFAULT_INIT_VAR[self.variant] if self.init_var is None else self.init_var
-        return ActionSequences(self.horizon, int(self.action_space.shape[0]), init_var)  # type: ignore[index]
+        assert self.init_var is not None
+        action_dim = int(self.action_space.shape[0])  # type: ignore[index]
+        if self.variant == "poplin-a":
+            assert self.policy.actor is not None
+            return PolicyActionNoise(self.horizon, action_dim, self.init_var, self.policy.actor, self.proposal)
+        if self.variant == "poplin-p":
+            assert self.policy.actor is not None
+            return PolicyParameterNoise(self.horizon, action_dim, self.init_var, self.policy.actor, self.noise)
+        return ActionSequences(self.horizon, action_dim, self.init_var)
 
     def _setup_model(self) -> None:
         reward_fn, termination_fn, exclude = self._resolve_task()
@@ -300,6 +400,9 @@ class POPLIN(OffPolicyAlgorithm):
             model_input_exclude=list(exclude),
             learned_reward=self.learned_reward,
             model_learning_rate=self.model_learning_rate,
+            policy_net_arch=self.policy_net_arch,
+            policy_learning_rate=self.policy_learning_rate,
+            discriminator_net_arch=GAN_DISCRIMINATOR_NET_ARCH if self.distillation == "gan" else None,
         )
         self._generator = th.Generator(device=self.device)
         super()._setup_model()
@@ -324,6 +427,9 @@ class POPLIN(OffPolicyAlgorithm):
         self._warm_start: th.Tensor | None = None
         self._plan_return_sum = th.zeros((), device=self.device)
         self._plan_count = 0
+        self._collecting = False  # True while SB3's rollout collection asks for an action
+        # planned real steps since the last distillation: (states, first blocks, elites' first blocks)
+        self._planned: list[tuple[th.Tensor, th.Tensor, th.Tensor | None]] = []
 
     def set_random_seed(self, seed: int | None = None) -> None:
         """Seed python, numpy, torch, the action space and the planner's generator."""
@@ -358,7 +464,7 @@ class POPLIN(OffPolicyAlgorithm):
         :param deterministic: SB3 interface (see above)
         :return: actions in env units and the new warm start
         """
-        if self.control == "policy":
+        if self.control == "policy" and not self._collecting:
             return self.policy.predict(observation, state, episode_start, deterministic)
         obs_tensor, vectorized = self.policy.obs_to_tensor(observation)
         assert isinstance(obs_tensor, th.Tensor)
@@ -383,6 +489,10 @@ class POPLIN(OffPolicyAlgorithm):
         result = self.planner.plan(obs, mean, self._generator)
         if internal:
             self._warm_start = result.next_mean
+        if self._collecting and self.policy.actor is not None:
+            first_block = self.planner.search_space.first_block
+            elites = first_block(result.elites) if self.distill_imagined else None
+            self._planned.append((obs, first_block(result.solution), elites))
         self._plan_return_sum = self._plan_return_sum + result.elite_return.sum()
         self._plan_count += n_envs
         actions = self.planner.to_env_units(result.action).cpu().numpy()
@@ -396,7 +506,11 @@ class POPLIN(OffPolicyAlgorithm):
         # The original: uniform random actions until the model has been trained once.
         if not self._model_fitted:
             learning_starts = max(learning_starts, self.num_timesteps + 1)
-        return super()._sample_action(learning_starts, action_noise, n_envs)
+        self._collecting = True  # training always plans (MPC), whatever `control` says
+        try:
+            return super()._sample_action(learning_starts, action_noise, n_envs)
+        finally:
+            self._collecting = False
 
     def _store_transition(
         self,
@@ -426,8 +540,56 @@ class POPLIN(OffPolicyAlgorithm):
 
         return flat(buffer.observations), flat(buffer.actions), flat(buffer.next_observations), flat(buffer.rewards)[:, 0]
 
+    def _distill(self) -> dict[str, float]:
+        """Train the policy network from the planned steps recorded since the last call."""
+        actor = self.policy.actor
+        if actor is None or not self._planned:
+            return {}
+        states = th.cat([step[0] for step in self._planned])  # [B, o]
+        blocks = th.cat([step[1] for step in self._planned])  # [B, block]
+        if self.distill_imagined:
+            elites = th.cat([step[2] for step in self._planned if step[2] is not None])  # [B, K, block]
+            k = elites.shape[1]
+            all_states = th.cat([states, states.repeat_interleave(k, dim=0)])
+            blocks = th.cat([blocks, elites.reshape(-1, blocks.shape[1])])
+        else:
+            all_states = states
+        self._planned = []
+        if self.distillation == "avg":
+            stats = average_perturbation(actor, blocks)
+            actor.update_whitening(states)
+            return stats
+        with th.no_grad():  # what the planner meant, with the policy as it was while planning
+            targets = self.planner.search_space.executed_action(blocks, all_states, None)
+        actor.update_whitening(states)  # changes the parametrisation, not the function
+        assert self.policy_epochs is not None
+        with th.enable_grad():
+            if self.distillation == "gan":
+                assert self.policy.discriminator is not None and self.init_var is not None
+                return gan_distillation(
+                    actor,
+                    self.policy.actor_optimizer,
+                    self.policy.discriminator,
+                    self.policy.discriminator_optimizer,
+                    all_states,
+                    targets,
+                    noise_var=self.init_var,
+                    epochs=self.policy_epochs,
+                    batch_size=self.policy_batch_size,
+                    generator=self._generator,
+                )
+            return behaviour_cloning(
+                actor,
+                self.policy.actor_optimizer,
+                all_states,
+                targets,
+                epochs=self.policy_epochs,
+                batch_size=self.policy_batch_size,
+                generator=self._generator,
+            )
+
     def train(self, gradient_steps: int, batch_size: int) -> None:
-        """Refit the dynamics model on all data (``model_epochs`` epochs)."""
+        """Refit the dynamics model on all data (``model_epochs`` epochs), then distill the policy."""
         self.policy.set_training_mode(True)
         obs, actions, next_obs, rewards = self._transitions()
         result = self.policy.dynamics.fit(
@@ -441,8 +603,11 @@ class POPLIN(OffPolicyAlgorithm):
             holdout_ratio=self.holdout_ratio,
             generator=self._generator,
         )
+        distill_stats = self._distill()
         self.policy.set_training_mode(False)
         self._model_fitted = True
+        for key, value in distill_stats.items():
+            self.logger.record(f"train/{key}", value)
         self._n_updates += 1
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/model_loss", result.loss)
@@ -475,8 +640,31 @@ class POPLIN(OffPolicyAlgorithm):
         )
 
     # ------------------------------------------------------------------ saving
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfPOPLIN],
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        control: str | None = None,
+        **kwargs: Any,
+    ) -> SelfPOPLIN:
+        """
+        Load a saved agent (an env is optional: planning needs none). Same arguments as SB3's
+        ``load``, plus:
+
+        :param control: ``"mpc"`` or ``"policy"`` to override the saved control mode
+        """
+        model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+        if control is not None:
+            model.control = control
+        return model
+
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "planner", "_generator", "_warm_start", "_plan_return_sum"]
+        return [*super()._excluded_save_params(), "planner", "_generator", "_warm_start", "_plan_return_sum", "_planned"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        return ["policy", "policy.dynamics_optimizer"], []
+        return ["policy", *self.policy.optimizer_names()], []

@@ -128,6 +128,14 @@ def test_random_warmup_then_planning_and_logger_keys(tmp_path):
     assert float(rows[-1]["train/n_transitions"]) == 600 - 200  # fitted before the last episode was collected
 
 
+def test_progress_bar_and_verbose_output(capsys):
+    model = tiny(verbose=1)
+    model.learn(400, progress_bar=True)
+    out = capsys.readouterr().out
+    assert "model_loss" in out and "elite_return" in out  # verbose=1 prints the logger table
+    assert model.num_timesteps == 400
+
+
 def test_random_shooting_trains_and_plans():
     model = tiny("rs", population_size=64)
     model.learn(400)

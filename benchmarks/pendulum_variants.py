@@ -1,0 +1,81 @@
+"""
+Every POPLIN configuration on Pendulum-v1 with the CPU planner settings: MPC and policy-control
+returns after a fixed number of env steps, and wall time. Appends one row per configuration to
+benchmarks/RESULTS.md.
+
+    python benchmarks/pendulum_variants.py [--configs poplin-a/init poplin-p/sep/avg ...] [--steps 3000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.evaluation import evaluate_policy
+
+from sb3_poplin import POPLIN
+from sb3_poplin.demo import CPU_SETTINGS
+
+CONFIGS: dict[str, dict] = {
+    "pets": dict(policy="pets"),
+    "poplin-a/init": dict(policy="poplin-a", proposal="init"),
+    "poplin-a/replan": dict(policy="poplin-a", proposal="replan"),
+    "poplin-p/sep/avg": dict(policy="poplin-p", noise="sep", distillation="avg"),
+    "poplin-p/sep/bc": dict(policy="poplin-p", noise="sep", distillation="bc"),
+    "poplin-p/sep/gan": dict(policy="poplin-p", noise="sep", distillation="gan"),
+    "poplin-p/uni/avg": dict(policy="poplin-p", noise="uni", distillation="avg"),
+}
+RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "RESULTS.md")
+
+
+def run(name: str, steps: int, seed: int, episodes: int) -> dict:
+    model = POPLIN(env="Pendulum-v1", seed=seed, **CONFIGS[name], **CPU_SETTINGS)
+    start = time.time()
+    model.learn(steps)
+    train_time = time.time() - start
+    env = model.get_env()
+    assert env is not None
+    start = time.time()
+    mpc, _ = evaluate_policy(model, env, n_eval_episodes=episodes, return_episode_rewards=True)
+    eval_time = time.time() - start
+    policy = None
+    if model.variant.startswith("poplin"):
+        model.control = "policy"
+        policy, _ = evaluate_policy(model, env, n_eval_episodes=episodes, return_episode_rewards=True)
+    return dict(name=name, mpc=mpc, policy=policy, train_time=train_time, eval_time=eval_time)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--episodes", type=int, default=10)
+    args = parser.parse_args()
+    th.set_num_threads(1)
+    command = "python " + " ".join(sys.argv)
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}, 1 thread"
+    settings = ", ".join(f"{k}={v}" for k, v in CPU_SETTINGS.items())
+    for name in args.configs:
+        r = run(name, args.steps, args.seed, args.episodes)
+
+        def fmt(returns: list[float] | None) -> str:
+            return "n/a" if returns is None else f"{np.mean(returns):.1f} ± {np.std(returns):.1f}"
+
+        row = (
+            f"| {datetime.date.today()} | `{command}` | {name} | seed {args.seed}, {args.steps} steps, {settings} | "
+            f"{fmt(r['mpc'])} | {fmt(r['policy'])} | {r['train_time']:.0f} s + {r['eval_time']:.0f} s | {machine} |"
+        )
+        print(row, flush=True)
+        with open(RESULTS, "a") as file:
+            file.write(row + "\n")
+
+
+if __name__ == "__main__":
+    main()

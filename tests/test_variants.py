@@ -1,0 +1,288 @@
+"""POPLIN-A and POPLIN-P: the policy network, the search spaces, distillation and control modes."""
+
+import numpy as np
+import pytest
+import torch as th
+from torch.func import functional_call
+
+from sb3_poplin import POPLIN
+from sb3_poplin.callbacks import ControlModesEvalCallback
+from sb3_poplin.distillation import average_perturbation, behaviour_cloning, gan_distillation
+from sb3_poplin.dynamics import ProbabilisticEnsemble
+from sb3_poplin.planning import MPCPlanner, PolicyActionNoise, PolicyParameterNoise
+from sb3_poplin.policies import Discriminator, PolicyNetwork
+
+TINY = dict(
+    horizon=5, population_size=20, num_elites=4, cem_iterations=2, ensemble_size=2, dynamics_net_arch=(16, 16), model_epochs=2
+)
+CONFIGS = [
+    dict(policy="poplin-a", proposal="init"),
+    dict(policy="poplin-a", proposal="replan"),
+    dict(policy="poplin-p", noise="sep", distillation="avg"),
+    dict(policy="poplin-p", noise="sep", distillation="bc"),
+    dict(policy="poplin-p", noise="sep", distillation="gan"),
+    dict(policy="poplin-p", noise="uni", distillation="avg"),
+]
+
+
+def whitened_policy(seed=0, obs_dim=3, action_dim=2, arch=(8, 6)):
+    th.manual_seed(seed)
+    policy = PolicyNetwork(obs_dim, action_dim, arch)
+    policy.update_whitening(th.randn(50, obs_dim) * 3 + 1)
+    return policy
+
+
+# ---------------------------------------------------------------- policy network
+def test_perturbed_forward_equals_a_loop_of_functional_forwards():
+    policy = whitened_policy()
+    rows, particles, w = 7, 3, policy.num_params
+    assert w == 3 * 8 + 8 + 8 * 6 + 6 + 6 * 2 + 2
+    obs, noise = th.randn(rows, particles, 3), 0.3 * th.randn(rows, w)
+    batched = policy.forward_perturbed(obs, noise)
+    names = [name for name, _ in policy.named_parameters()]  # weights.0, weights.1, ..., biases.0, ...
+    for r in range(rows):
+        params, offset = {}, 0
+        for i, (d_in, d_out) in enumerate(policy.shapes):  # the flat layout: W_i row-major, then b_i
+            params[f"weights.{i}"] = policy.weights[i] + noise[r, offset : offset + d_in * d_out].view(d_in, d_out)
+            offset += d_in * d_out
+            params[f"biases.{i}"] = policy.biases[i] + noise[r, offset : offset + d_out]
+            offset += d_out
+        assert sorted(params) == sorted(names)
+        expected = functional_call(policy, params, (obs[r],))
+        assert th.allclose(batched[r], expected, atol=1e-5)
+
+
+def test_flat_parameters_and_add_to_parameters_share_one_layout():
+    policy = whitened_policy()
+    theta = policy.flat_parameters().clone()
+    delta = th.randn(policy.num_params)
+    policy.add_to_parameters(delta)
+    assert th.allclose(policy.flat_parameters(), theta + delta)
+    obs = th.randn(4, 1, 3)
+    policy.add_to_parameters(-delta)
+    assert th.allclose(policy.flat_parameters(), theta, atol=1e-6)
+    # zero noise is the plain network
+    assert th.allclose(policy.forward_perturbed(obs, th.zeros(4, policy.num_params)), policy(obs), atol=1e-6)
+
+
+def test_whitening_update_keeps_the_function_and_floors_the_variance():
+    policy = whitened_policy()
+    obs = th.randn(20, 3) * 5
+    before = policy(obs)
+    policy.update_whitening(th.randn(200, 3) * 0.01 + 7.0)  # tiny variance: floored at 1e-2
+    assert th.allclose(policy(obs), before, atol=1e-4)
+    assert policy.obs_count.item() == 250
+    all_obs_var = policy.obs_var
+    assert (all_obs_var > 0).all()
+
+
+def test_initial_policy_output_is_small_and_actions_are_clipped():
+    policy = PolicyNetwork(3, 1, [32])
+    assert policy(th.randn(100, 3)).abs().max() < 0.2  # normc: output layer scaled to 0.01
+    with th.no_grad():
+        policy.biases[-1].fill_(5.0)
+    assert th.all(policy.act(th.randn(10, 3)) == 1.0)
+
+
+# ---------------------------------------------------------------- search spaces
+def make_planner(space_cls, **kwargs):
+    th.manual_seed(0)
+    model = ProbabilisticEnsemble(3, 1, ensemble_size=2, hidden_sizes=(8,))
+    policy = PolicyNetwork(3, 1, [4])
+    space = space_cls(horizon=4, action_dim=1, init_var=0.1, policy=policy, **kwargs)
+    return space, policy, model
+
+
+def test_parameter_noise_shift_semantics():
+    sep, policy, _ = make_planner(PolicyParameterNoise, noise="sep")
+    w = policy.num_params
+    assert sep.block == w and sep.dim == 4 * w
+    mean = th.arange(4 * w, dtype=th.float32).unsqueeze(0)
+    shifted = sep.shift(mean)
+    assert th.equal(shifted[:, : 3 * w], mean[:, w:]) and th.equal(shifted[:, 3 * w :], th.zeros(1, w))
+    uni, _, _ = make_planner(PolicyParameterNoise, noise="uni")
+    assert uni.dim == w
+    mean = th.randn(2, w)
+    assert th.equal(uni.shift(mean), mean)  # one shared block, carried over unchanged
+    with pytest.raises(ValueError, match=r"Unknown POPLIN-P noise 'both'; accepted values: \['sep', 'uni'\]"):
+        make_planner(PolicyParameterNoise, noise="both")
+
+
+def test_action_noise_shift_and_proposals():
+    init, policy, model = make_planner(PolicyActionNoise, proposal="init")
+    assert init.dim == 4
+    assert th.equal(init.shift(th.tensor([[1.0, 2.0, 3.0, 4.0]])), th.tensor([[2.0, 3.0, 4.0, 0.0]]))
+    planner = MPCPlanner(
+        model, init, None, lambda o, a, n: -n[..., 0], None, "expectation", 1, th.tensor([-2.0]), th.tensor([2.0])
+    )
+    obs = th.randn(2, 3)
+    refs = init.prepare(obs, planner)  # open-loop policy rollout through the mean model
+    assert refs.shape == (2, 4, 1)
+    with th.no_grad():
+        s1, _ = model.propagate(obs.unsqueeze(1), policy.act(obs.unsqueeze(1)), "expectation")
+    assert th.allclose(refs[:, 0], policy.act(obs)) and th.allclose(refs[:, 1], policy.act(s1[:, 0]))
+    z = th.zeros(2, 5, 4)
+    states = th.randn(2, 5, 1, 3)
+    assert th.allclose(init.actions(z, 1, states, refs)[:, :, 0], refs[:, 1].unsqueeze(1).expand(2, 5, 1))
+    replan, _, _ = make_planner(PolicyActionNoise, proposal="replan")
+    assert replan.prepare(obs, planner) is None
+    assert th.allclose(replan.actions(z + 0.1, 2, states, None), (policy.act(states) + 0.1).clamp(-1, 1))
+    with pytest.raises(ValueError, match="Unknown POPLIN-A proposal"):
+        make_planner(PolicyActionNoise, proposal="open")
+
+
+def test_zero_noise_executes_the_policy():
+    p_space, policy, _ = make_planner(PolicyParameterNoise, noise="sep")
+    obs = th.randn(3, 3)
+    assert th.allclose(p_space.executed_action(th.zeros(3, p_space.dim), obs, None), policy.act(obs), atol=1e-6)
+    a_space, policy, _ = make_planner(PolicyActionNoise, proposal="init")
+    assert th.allclose(a_space.executed_action(th.zeros(3, a_space.dim), obs, None), policy.act(obs))
+
+
+def test_poplin_p_with_vanishing_noise_acts_like_its_policy():
+    model = POPLIN("poplin-p", "Pendulum-v1", seed=0, init_var=1e-12, **TINY)
+    obs = np.array([[0.3, 0.95, -1.0], [-1.0, 0.0, 2.0]], dtype=np.float32)
+    planned, _ = model.predict(obs, episode_start=np.ones(2, dtype=bool))
+    model.control = "policy"
+    direct, _ = model.predict(obs)
+    np.testing.assert_allclose(planned, direct, atol=1e-4)
+
+
+# ---------------------------------------------------------------- distillation
+def test_average_moves_theta_by_exactly_the_mean_perturbation():
+    policy = whitened_policy()
+    theta = policy.flat_parameters().clone()
+    omegas = th.randn(25, policy.num_params)
+    average_perturbation(policy, omegas)
+    assert th.allclose(policy.flat_parameters() - theta, omegas.mean(dim=0), atol=1e-6)
+
+
+def target_policy_data(n=600):
+    gen = th.Generator().manual_seed(0)
+    states = th.randn(n, 3, generator=gen)
+    targets = th.tanh(states[:, :1] - 0.5 * states[:, 1:2]).repeat(1, 2) * th.tensor([0.8, -0.4])
+    return states, targets
+
+
+def test_behaviour_cloning_fits_a_target_policy():
+    states, targets = target_policy_data()
+    policy = whitened_policy(arch=(32,))
+    before = th.nn.functional.mse_loss(policy(states), targets).item()
+    stats = behaviour_cloning(
+        policy, th.optim.Adam(policy.parameters(), lr=3e-3), states, targets, generator=th.Generator().manual_seed(0)
+    )
+    after = th.nn.functional.mse_loss(policy(states), targets).item()
+    assert after < 0.05 * before and stats["policy_holdout_loss"] < 0.01
+
+
+def test_gan_distillation_moves_the_policy_towards_the_planned_actions():
+    states, targets = target_policy_data(400)
+    policy = whitened_policy(arch=(32,))
+    disc = Discriminator(2 + 3)
+    before = th.nn.functional.mse_loss(policy(states), targets).item()
+    stats = gan_distillation(
+        policy,
+        th.optim.Adam(policy.parameters(), lr=3e-3),
+        disc,
+        th.optim.Adam(disc.parameters(), lr=3e-3),
+        states,
+        targets,
+        noise_var=1e-4,
+        epochs=40,
+        generator=th.Generator().manual_seed(0),
+    )
+    assert stats["policy_loss"] < 0.5 * before, (before, stats)
+
+
+def test_only_planned_steps_are_distilled(monkeypatch):
+    seen = []
+    import sb3_poplin.poplin as poplin_module
+
+    original = poplin_module.behaviour_cloning
+
+    def spy(policy, optimizer, states, targets, **kwargs):
+        seen.append(states.shape[0])
+        return original(policy, optimizer, states, targets, **kwargs)
+
+    monkeypatch.setattr(poplin_module, "behaviour_cloning", spy)
+    model = POPLIN("poplin-a", "Pendulum-v1", seed=0, distill_imagined=False, **TINY)
+    model.learn(600)  # a random episode, then two planned ones; a fit after each
+    assert seen == [200, 200]  # fit 1: nothing planned yet; fits 2 and 3: that episode's 200 planned states
+    model = POPLIN("poplin-a", "Pendulum-v1", seed=0, **TINY)  # BC-AI: plus the 4 elites of every planned step
+    seen.clear()
+    model.learn(400)
+    assert seen == [200 * (1 + 4)]
+
+
+# ---------------------------------------------------------------- algorithm
+@pytest.mark.parametrize("config", CONFIGS, ids=lambda c: "/".join(str(v) for v in c.values()))
+def test_variant_trains_plans_and_saves(tmp_path, config):
+    model = POPLIN(env="Pendulum-v1", seed=0, **config, **TINY)
+    model.learn(400)
+    assert model.policy.actor is not None
+    obs = np.array([[np.cos(2.0), np.sin(2.0), 0.5], [1.0, 0.0, 0.0]], dtype=np.float32)
+    path = tmp_path / "model.zip"
+    model.control = "policy"
+    model.save(path)
+    loaded = POPLIN.load(path, device="cpu")
+    assert (loaded.variant, loaded.control, loaded.distillation) == (config["policy"], "policy", model.distillation)
+    for (name, a), (_, b) in zip(model.policy.state_dict().items(), loaded.policy.state_dict().items(), strict=True):
+        assert th.equal(a, b), name
+    np.testing.assert_allclose(model.predict(obs)[0], loaded.predict(obs)[0], atol=1e-6)  # policy control
+    loaded = POPLIN.load(path, device="cpu", control="mpc")
+    model.control = "mpc"
+    model.set_random_seed(3)
+    loaded.set_random_seed(3)
+    start = np.ones(2, dtype=bool)
+    np.testing.assert_allclose(
+        model.predict(obs, episode_start=start)[0], loaded.predict(obs, episode_start=start)[0], atol=1e-6
+    )
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(policy="poplin-a", distillation="avg"), r"Unknown distillation 'avg' for 'poplin-a'; accepted values: \['bc'\]"),
+        (dict(policy="poplin-p", distillation="dagger"), r"accepted values: \['avg', 'bc', 'gan'\]"),
+        (dict(policy="pets", distillation="bc"), "has no policy network to distill into"),
+        (dict(policy="pets", policy_net_arch=[8]), "leave policy_net_arch=None"),
+        (dict(policy="poplin-a", proposal="closed"), r"Unknown proposal 'closed' \(POPLIN-A\)"),
+        (dict(policy="poplin-p", noise="shared"), r"Unknown noise 'shared' \(POPLIN-P\)"),
+        (dict(policy="pets", control="policy"), "control='policy' is not available"),
+    ],
+)
+def test_bad_variant_settings(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        POPLIN(env="Pendulum-v1", **kwargs)
+
+
+def test_variant_defaults_are_the_papers():
+    a = POPLIN("poplin-a", "Pendulum-v1", **TINY)
+    p = POPLIN("poplin-p", "Pendulum-v1", **TINY)
+    assert (a.init_var, a.policy_net_arch, a.distillation, a.distill_imagined) == (0.25, [64, 64], "bc", True)
+    assert (p.init_var, p.policy_net_arch, p.distillation, p.distill_imagined) == (0.1, [32], "avg", False)
+    assert p.planner.search_space.dim == 5 * (3 * 32 + 32 + 32 + 1)
+
+
+def test_training_collects_with_mpc_even_in_policy_control():
+    model = POPLIN("poplin-p", "Pendulum-v1", seed=0, control="policy", **TINY)
+    calls = []
+    plan = model.planner.plan
+    model.planner.plan = lambda *args: calls.append(1) or plan(*args)
+    model.learn(300)  # train_freq is one episode: SB3 finishes the second one (200 planned steps)
+    assert model.num_timesteps == 400 and len(calls) == 200 and model.control == "policy"
+
+
+def test_control_modes_callback_logs_both(tmp_path):
+    model = POPLIN("poplin-p", "Pendulum-v1", seed=0, **TINY)
+    callback = ControlModesEvalCallback(eval_freq=200, n_eval_episodes=2, log_path=str(tmp_path))
+    model.learn(400, callback=callback)
+    for mode in ("mpc", "policy"):
+        data = np.load(tmp_path / f"evaluations_{mode}.npz")
+        assert data["timesteps"].tolist() == [200, 400] and data["results"].shape == (2, 2)
+        assert (data["ep_lengths"] == 200).all()
+    assert model.control == "mpc"
+    pets = POPLIN("pets", "Pendulum-v1", seed=0, **TINY)
+    callback = ControlModesEvalCallback(eval_freq=200, n_eval_episodes=1, log_path=str(tmp_path / "pets"))
+    pets.learn(200, callback=callback)
+    assert (tmp_path / "pets" / "evaluations_mpc.npz").exists() and not (tmp_path / "pets" / "evaluations_policy.npz").exists()
