@@ -49,6 +49,7 @@ class OptimizerResult(NamedTuple):
     solution: th.Tensor  # [n_envs, D]: CEM's final mean, or random shooting's best sample
     elite_return: th.Tensor  # [n_envs]: mean return of the final elites (or the best sample)
     elites: th.Tensor  # [n_envs, K, D]: the final elites (random shooting: the best sample, K = 1)
+    found: th.Tensor  # [n_envs] bool: some candidate had a finite return (else the solution is the incoming mean)
 
 
 class CEM:
@@ -105,6 +106,7 @@ class CEM:
         n_envs, dim = mean.shape
         elite_return = th.zeros(n_envs, device=mean.device)
         elites = mean.unsqueeze(1).expand(n_envs, self.num_elites, dim)
+        found = th.zeros(n_envs, dtype=th.bool, device=mean.device)
         for _ in range(self.iterations):
             std = constrain_var(mean, var).sqrt()
             noise = self._noise((n_envs, self.population_size, dim), mean.device, generator)
@@ -119,10 +121,11 @@ class CEM:
             elite_mean = (elites * weight).sum(dim=1) / count
             elite_var = ((elites - elite_mean.unsqueeze(1)) ** 2 * weight).sum(dim=1) / count
             has_elites = valid.any(dim=1, keepdim=True)  # [n_envs, 1]
+            found = found | has_elites.squeeze(1)
             mean = th.where(has_elites, self.alpha * mean + (1 - self.alpha) * elite_mean, mean)
             var = th.where(has_elites, self.alpha * var + (1 - self.alpha) * elite_var, var)
             elite_return = th.where(valid, top, th.zeros_like(top)).sum(dim=1) / count.squeeze(1)
-        return OptimizerResult(mean, elite_return, elites)
+        return OptimizerResult(mean, elite_return, elites, found)
 
 
 class RandomShooting:
@@ -154,7 +157,8 @@ class RandomShooting:
         # with no finite candidate at all, fall back to the incoming mean
         finite = th.isfinite(best_return).unsqueeze(1)
         solution = th.where(finite, solution, mean)
-        return OptimizerResult(solution, th.where(finite.squeeze(1), best_return, 0.0), solution.unsqueeze(1))
+        found = finite.squeeze(1)
+        return OptimizerResult(solution, th.where(found, best_return, 0.0), solution.unsqueeze(1), found)
 
 
 class SearchSpace(ABC):
@@ -222,6 +226,10 @@ class SearchSpace(ABC):
     @abstractmethod
     def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
         """Scaled action ``[n_envs, A]`` to execute given the optimizer's solution ``[n_envs, D]``."""
+
+    def fallback_action(self, obs: th.Tensor) -> th.Tensor:
+        """Scaled action ``[n_envs, A]`` when no candidate had a finite return: the action-space centre."""
+        return th.zeros(obs.shape[0], self.action_dim, device=obs.device)
 
 
 class ActionSequences(SearchSpace):
@@ -296,6 +304,9 @@ class PolicyActionNoise(SearchSpace):
     def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
         return (self.policy.act(obs) + solution[:, : self.action_dim]).clamp(-1.0, 1.0)
 
+    def fallback_action(self, obs: th.Tensor) -> th.Tensor:
+        return self.policy.act(obs)
+
 
 class PolicyParameterNoise(SearchSpace):
     """
@@ -340,6 +351,9 @@ class PolicyParameterNoise(SearchSpace):
     def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
         return self.policy.forward_perturbed(obs.unsqueeze(1), self.first_block(solution))[:, 0].clamp(-1.0, 1.0)
 
+    def fallback_action(self, obs: th.Tensor) -> th.Tensor:
+        return self.policy.act(obs)
+
 
 class PlanResult(NamedTuple):
     """One plan for a batch of envs."""
@@ -349,6 +363,7 @@ class PlanResult(NamedTuple):
     elite_return: th.Tensor  # [n_envs] planned return of the final elites
     solution: th.Tensor  # [n_envs, D] the optimizer's solution (CEM: final mean)
     elites: th.Tensor  # [n_envs, K, D] the final elites
+    fallback: th.Tensor  # [n_envs] bool: no candidate was finite, the fallback action was used
 
 
 class MPCPlanner:
@@ -447,7 +462,11 @@ class MPCPlanner:
             self.search_space.constrain_var,
             generator,
         )
-        action = self.search_space.executed_action(result.solution, obs, context)
-        return PlanResult(
-            action, self.search_space.shift(result.solution), result.elite_return, result.solution, result.elites
-        )
+        space = self.search_space
+        found = result.found.unsqueeze(1)
+        action = th.where(found, space.executed_action(result.solution, obs, context), space.fallback_action(obs))
+        # never a non-finite action (e.g. a NaN observation): the action-space centre instead
+        action = th.nan_to_num(action, nan=0.0, posinf=1.0, neginf=-1.0).clamp(-1.0, 1.0)
+        # an env whose plan failed starts afresh at the next step
+        next_mean = th.where(found, space.shift(result.solution), space.initial_mean(obs.shape[0], obs.device))
+        return PlanResult(action, next_mean, result.elite_return, result.solution, result.elites, ~result.found)

@@ -15,11 +15,15 @@ all data and collect the next period with MPC.
 from __future__ import annotations
 
 import io
+import json
 import math
 import pathlib
 import warnings
-from collections.abc import Sequence
+import zipfile
+from collections.abc import Iterable, Sequence
 from typing import Any, ClassVar, TypeVar
+
+import os
 
 import gymnasium as gym
 import numpy as np
@@ -103,6 +107,41 @@ def _check_spaces(env: GymEnv | None) -> None:
             f"POPLIN needs a flat Box observation space, got {observation_space}. "
             "Flatten it first (gymnasium.wrappers.FlattenObservation)."
         )
+
+
+def _check_saved_agent(path: str | pathlib.Path | io.BufferedIOBase) -> None:
+    """Reject, with the reason and the fix, anything that is not a complete POPLIN zip."""
+    where = str(path) if isinstance(path, (str, pathlib.Path)) else "the given file object"
+    if isinstance(path, (str, pathlib.Path)) and not os.path.exists(path):
+        if os.path.exists(f"{path}.zip"):
+            path = f"{path}.zip"
+        else:
+            raise FileNotFoundError(f"No saved agent at {where} (nor {where}.zip): check the path given to POPLIN.load.")
+    start = path.tell() if isinstance(path, io.BufferedIOBase) else None
+    try:
+        with zipfile.ZipFile(path) as archive:  # type: ignore[arg-type]
+            names = set(archive.namelist())
+            corrupted = archive.testzip()
+            data = json.loads(archive.read("data")) if "data" in names else None
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as error:
+        raise ValueError(
+            f"{where} is not a readable POPLIN zip (truncated or corrupted? {error}). "
+            "Load a file written by POPLIN.save / model.save."
+        ) from None
+    finally:
+        if start is not None:
+            path.seek(start)  # type: ignore[union-attr]
+    if corrupted is not None:
+        raise ValueError(f"{where} is corrupted: its member {corrupted!r} fails the CRC check. Save the agent again.")
+    if not isinstance(data, dict) or "variant" not in data:
+        saved_by = data.get("policy_class", {}).get("__module__", "unknown") if isinstance(data, dict) else "unknown"
+        raise ValueError(
+            f"{where} was not saved by POPLIN (its policy comes from {saved_by!r}): "
+            "load it with the algorithm that saved it, e.g. stable_baselines3.SAC.load."
+        )
+    missing = {"policy.pth", "policy.dynamics_optimizer.pth"} - names
+    if missing:
+        raise ValueError(f"{where} is an incomplete POPLIN zip (missing {sorted(missing)}). Save the agent again.")
 
 
 class POPLIN(OffPolicyAlgorithm):
@@ -427,6 +466,11 @@ class POPLIN(OffPolicyAlgorithm):
         self._warm_start: th.Tensor | None = None
         self._plan_return_sum = th.zeros((), device=self.device)
         self._plan_count = 0
+        self._fallbacks = 0  # plans with no finite candidate since the last log
+        self._fallback_warned = False
+        saved = self.__dict__.pop("_saved_planner_state", None)  # restored by load()
+        if saved is not None:
+            self._restore_planner_state(saved)
         self._collecting = False  # True while SB3's rollout collection asks for an action
         # planned real steps since the last distillation: (states, first blocks, elites' first blocks)
         self._planned: list[tuple[th.Tensor, th.Tensor, th.Tensor | None]] = []
@@ -489,16 +533,32 @@ class POPLIN(OffPolicyAlgorithm):
         result = self.planner.plan(obs, mean, self._generator)
         if internal:
             self._warm_start = result.next_mean
-        if self._collecting and self.policy.actor is not None:
-            first_block = self.planner.search_space.first_block
-            elites = first_block(result.elites) if self.distill_imagined else None
-            self._planned.append((obs, first_block(result.solution), elites))
         self._plan_return_sum = self._plan_return_sum + result.elite_return.sum()
         self._plan_count += n_envs
-        actions = self.planner.to_env_units(result.action).cpu().numpy()
+        # one device-to-host transfer for the actions and the fallback flags
+        host = th.cat([self.planner.to_env_units(result.action), result.fallback.unsqueeze(1).float()], dim=1).cpu().numpy()
+        actions, fallback = host[:, :-1], host[:, -1] > 0
+        if fallback.any():
+            self._on_fallback(int(fallback.sum()))
+        if self._collecting and self.policy.actor is not None:
+            keep = th.as_tensor(~fallback, device=self.device)  # a failed plan says nothing to distill
+            first_block = self.planner.search_space.first_block
+            elites = first_block(result.elites)[keep] if self.distill_imagined else None
+            self._planned.append((obs[keep], first_block(result.solution)[keep], elites))
         if not vectorized:
             actions = actions.squeeze(0)
         return actions, result.next_mean
+
+    def _on_fallback(self, count: int) -> None:
+        self._fallbacks += count
+        if not self._fallback_warned:
+            self._fallback_warned = True
+            fallback = "the policy network's action" if self.policy.actor is not None else "the action-space centre"
+            warnings.warn(
+                f"No planned candidate had a finite return (the model or the observation produced NaN/inf): "
+                f"executing {fallback} instead. Counted in the logger as plan/fallbacks; warned once.",
+                stacklevel=3,
+            )
 
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
@@ -522,10 +582,21 @@ class POPLIN(OffPolicyAlgorithm):
         infos: list[dict[str, Any]],
     ) -> None:
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        if np.any(dones):
+            self._record_plan_stats()  # logged with the episode they describe (SB3 dumps right after)
         if self._warm_start is not None and np.any(dones):
             reset = th.as_tensor(np.asarray(dones, dtype=bool), device=self.device)
             fresh = self.planner.search_space.initial_mean(len(dones), self.device)
             self._warm_start = th.where(reset.unsqueeze(1), fresh, self._warm_start)
+
+    def _record_plan_stats(self) -> None:
+        """Log the planner's statistics since the last call: mean elite return and fallbacks."""
+        if self._plan_count:
+            self.logger.record("plan/elite_return", (self._plan_return_sum / self._plan_count).item())
+            self.logger.record("plan/fallbacks", self._fallbacks)
+        self._plan_return_sum = th.zeros((), device=self.device)
+        self._plan_count = 0
+        self._fallbacks = 0
 
     # ------------------------------------------------------------------ training
     def _transitions(self) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
@@ -616,10 +687,6 @@ class POPLIN(OffPolicyAlgorithm):
             self.logger.record("train/model_holdout_mse", result.holdout_mse)
         self.logger.record("train/model_epochs", result.epochs)
         self.logger.record("train/n_transitions", int(obs.shape[0]))
-        if self._plan_count:
-            self.logger.record("plan/elite_return", (self._plan_return_sum / self._plan_count).item())
-            self._plan_return_sum = th.zeros((), device=self.device)
-            self._plan_count = 0
 
     def learn(
         self: SelfPOPLIN,
@@ -640,6 +707,32 @@ class POPLIN(OffPolicyAlgorithm):
         )
 
     # ------------------------------------------------------------------ saving
+    def _restore_planner_state(self, saved: dict[str, Any]) -> None:
+        try:
+            self._generator.set_state(saved["generator"])
+        except (RuntimeError, TypeError):  # saved on another kind of device: keep the seeded generator
+            warnings.warn("The planner's random state was saved on another device and is not restored.", stacklevel=2)
+        warm = saved.get("warm_start")
+        self._warm_start = None if warm is None else warm.to(self.device)
+
+    def save(
+        self,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        exclude: Iterable[str] | None = None,
+        include: Iterable[str] | None = None,
+    ) -> None:
+        """
+        Save everything needed to plan and to keep training: settings, networks and normalisers,
+        optimizers, the control mode, the planner's random state and its warm start (not the
+        replay buffer: ``save_replay_buffer``).
+        """
+        warm = None if self._warm_start is None else self._warm_start.detach().cpu()
+        self._saved_planner_state = {"generator": self._generator.get_state(), "warm_start": warm}
+        try:
+            super().save(path, exclude, include)
+        finally:
+            del self._saved_planner_state
+
     @classmethod
     def load(  # type: ignore[override]
         cls: type[SelfPOPLIN],
@@ -658,6 +751,7 @@ class POPLIN(OffPolicyAlgorithm):
 
         :param control: ``"mpc"`` or ``"policy"`` to override the saved control mode
         """
+        _check_saved_agent(path)
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
         if control is not None:
             model.control = control

@@ -1,0 +1,96 @@
+"""
+Plan time of POPLIN-A and POPLIN-P against PETS at the same population, horizon and iterations,
+measured in one process (median of ``--repeats`` ``predict`` calls after warm-up). Appends one row
+per setting to benchmarks/RESULTS.md with the ratios to PETS.
+
+    python benchmarks/plan_time_variants.py [--setting paper|cpu] [--repeats 5] [--threads 1]
+
+``paper``: HalfCheetah-v5 sizes (17-dim obs, 6-dim action), population 500, horizon 30, 5 CEM
+iterations, 5 x (200, 200, 200, 200) ensemble, expectation propagation, policies [64, 64] (A) and
+[32] (P, W = 774 parameters). ``cpu``: Pendulum-v1 with the demo's CPU settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import statistics
+import sys
+import time
+import warnings
+
+import torch as th
+
+from sb3_poplin import POPLIN
+from sb3_poplin.demo import CPU_SETTINGS
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from results_file import append_row
+
+SETTINGS = {
+    "paper": (
+        "HalfCheetah-v5",
+        dict(
+            horizon=30,
+            population_size=500,
+            num_elites=50,
+            cem_iterations=5,
+            ensemble_size=5,
+            dynamics_net_arch=(200, 200, 200, 200),
+            learned_reward=True,
+        ),
+    ),
+    "cpu": ("Pendulum-v1", dict(CPU_SETTINGS)),
+}
+VARIANTS = {
+    "pets": dict(policy="pets"),
+    "poplin-a/init": dict(policy="poplin-a", proposal="init"),
+    "poplin-a/replan": dict(policy="poplin-a", proposal="replan"),
+    "poplin-p/sep": dict(policy="poplin-p", noise="sep"),
+    "poplin-p/uni": dict(policy="poplin-p", noise="uni"),
+}
+
+
+def plan_time(env_id: str, settings: dict, variant: dict, repeats: int) -> float:
+    """Median seconds per single-env ``predict`` (an untrained model plans at the same cost)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = POPLIN(env=env_id, seed=0, **variant, **settings)
+    obs = model.observation_space.sample()
+    for _ in range(2):
+        model.predict(obs)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        model.predict(obs)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--setting", choices=list(SETTINGS), default="paper")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    env_id, settings = SETTINGS[args.setting]
+    results = {name: plan_time(env_id, settings, variant, args.repeats) for name, variant in VARIANTS.items()}
+    pets = results["pets"]
+    cells = ", ".join(f"{name} {t * 1000:.0f} ms ({t / pets:.2f}x)" for name, t in results.items())
+    command = "python " + " ".join(sys.argv)
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}, {args.threads} thread(s)"
+    for name, t in results.items():
+        print(f"{name:16s} {t * 1000:8.1f} ms  {t / pets:5.2f}x PETS")
+    append_row(
+        "Plan time of the variants against PETS (`benchmarks/plan_time_variants.py`)",
+        "Median time of one single-env `predict` (a full plan), all variants in one process run; ratio to PETS in brackets.",
+        ["date", "command", "setting", "time per plan (ratio to PETS)", "machine"],
+        [str(datetime.date.today()), f"`{command}`", f"{args.setting}: {env_id}", cells, machine],
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,31 @@
+"""Append a row to the table of a section of benchmarks/RESULTS.md, creating the section when missing."""
+
+from __future__ import annotations
+
+import os
+
+RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "RESULTS.md")
+
+
+def append_row(section: str, intro: str, header: list[str], row: list[str], path: str = RESULTS) -> None:
+    """
+    :param section: the section's heading text (without ``## ``)
+    :param intro: paragraph written under a new section's heading
+    :param header: column names of a new section's table
+    :param row: the cells of the row to add (kept below the section's existing rows)
+    :param path: the results file
+    """
+    lines = open(path).read().splitlines() if os.path.exists(path) else ["# Benchmark results", ""]
+    line = "| " + " | ".join(row) + " |"
+    heading = f"## {section}"
+    if heading not in lines:
+        lines += ["", heading, "", intro, "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header), line]
+    else:
+        end = lines.index(heading) + 1
+        while end < len(lines) and not lines[end].startswith("## "):
+            end += 1
+        while lines[end - 1].strip() == "":
+            end -= 1
+        lines.insert(end, line)
+    with open(path, "w") as file:
+        file.write("\n".join(lines) + "\n")

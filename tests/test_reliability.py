@@ -1,0 +1,308 @@
+"""Reliability: clear errors for bad input, NaN-safe planning, exact save/load/resume, determinism, interruptions."""
+
+import io
+import warnings
+import zipfile
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from stable_baselines3 import SAC
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import configure
+
+from sb3_poplin import POPLIN
+
+TINY = dict(
+    horizon=4, population_size=16, num_elites=4, cem_iterations=2, ensemble_size=2, dynamics_net_arch=(16, 16), model_epochs=2
+)
+
+
+class SpaceEnv(gym.Env):
+    """A do-nothing env with the given spaces."""
+
+    def __init__(self, observation_space, action_space):
+        self.observation_space, self.action_space = observation_space, action_space
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, False, {}
+
+
+BOX1 = spaces.Box(-1.0, 1.0, (1,))
+
+
+@pytest.mark.parametrize(
+    "observation_space, action_space, message",
+    [
+        (spaces.Box(-1.0, 1.0, (3,)), spaces.Box(-np.inf, np.inf, (1,)), "finite action bounds.*RescaleAction"),
+        (spaces.Dict({"a": spaces.Box(-1.0, 1.0, (2,))}), BOX1, "flat Box observation space.*FlattenObservation"),
+        (spaces.Box(0, 255, (8, 8, 3), dtype=np.uint8), BOX1, "flat Box observation space"),
+        (spaces.Box(-1.0, 1.0, (3,)), spaces.MultiDiscrete([3, 3]), "Box action space"),
+    ],
+)
+def test_unsupported_spaces_are_rejected(observation_space, action_space, message):
+    with pytest.raises(ValueError, match=message):
+        POPLIN("pets", SpaceEnv(observation_space, action_space))
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(num_elites=0), "num_elites must be between 1 and population_size"),
+        (dict(population_size=0), "population_size must be an integer >= 1"),
+        (dict(cem_iterations=0), "cem_iterations must be an integer >= 1"),
+        (dict(ensemble_size=0), "ensemble_size must be an integer >= 1"),
+        (dict(cem_alpha=-0.1), r"cem_alpha must be in \[0, 1\)"),
+        (dict(init_var=-1.0), "init_var must be > 0"),
+        (dict(policy_epochs=0), "policy_epochs must be an integer >= 1"),
+    ],
+)
+def test_out_of_range_settings_are_rejected(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        POPLIN("poplin-p", "Pendulum-v1", **kwargs)
+
+
+# ---------------------------------------------------------------- loading bad files
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("saved")
+    POPLIN("pets", "Pendulum-v1", seed=0, **TINY).save(folder / "ok.zip")
+    SAC("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8])).save(folder / "sac.zip")
+    return folder
+
+
+def test_loading_what_is_not_a_poplin_zip(saved):
+    (saved / "text.zip").write_text("not a zip")
+    with pytest.raises(ValueError, match="not a readable POPLIN zip"):
+        POPLIN.load(saved / "text.zip")
+    data = (saved / "ok.zip").read_bytes()
+    (saved / "truncated.zip").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="truncated or corrupted"):
+        POPLIN.load(saved / "truncated.zip")
+    with pytest.raises(ValueError, match=r"not saved by POPLIN.*stable_baselines3.sac.policies"):
+        POPLIN.load(saved / "sac.zip")
+    with pytest.raises(FileNotFoundError, match="No saved agent at"):
+        POPLIN.load(saved / "missing.zip")
+    # loading by name without the suffix, and from a file object, still work
+    assert POPLIN.load(saved / "ok").variant == "pets"
+    assert POPLIN.load(io.BytesIO(data)).variant == "pets"
+
+
+def test_loading_a_zip_with_a_corrupted_member(saved):
+    with zipfile.ZipFile(saved / "ok.zip") as archive:
+        members = {name: archive.read(name) for name in archive.namelist()}
+    with zipfile.ZipFile(saved / "bad_crc.zip", "w", compression=zipfile.ZIP_STORED) as archive:
+        for name, content in members.items():
+            archive.writestr(name, content)
+    raw = bytearray((saved / "bad_crc.zip").read_bytes())
+    weights = members["policy.pth"]
+    middle = len(weights) // 2
+    offset = raw.find(weights[middle : middle + 64])  # stored uncompressed: flip a byte in the middle of the weights
+    assert offset > 0 and raw.count(weights[middle : middle + 64]) == 1
+    raw[offset + 10] ^= 0xFF
+    (saved / "bad_crc.zip").write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match="'policy.pth' fails the CRC check"):
+        POPLIN.load(saved / "bad_crc.zip")
+
+
+# ---------------------------------------------------------------- NaN-safe planning
+def nan_model(model, fraction):
+    """Make the dynamics produce NaN for a fraction of the rows of every forward pass."""
+    dynamics = model.policy.dynamics
+    forward = dynamics.forward
+
+    def broken(x):
+        mean, logvar = forward(x)
+        rows = int(mean.shape[1] * fraction)
+        mean = mean.clone()
+        mean[:, :rows] = float("nan")
+        return mean, logvar
+
+    dynamics.forward = broken
+
+
+def test_diverged_candidates_rank_last():
+    model = POPLIN("pets", "Pendulum-v1", seed=0, **{**TINY, "population_size": 40, "num_elites": 5})
+    nan_model(model, 0.5)  # the first half of the candidates always diverges
+    z_seen = {}
+    optimize = model.planner.optimizer.optimize
+
+    def spy(evaluate, mean, var, constrain, generator=None):
+        def wrapped(z):
+            returns = evaluate(z)
+            z_seen.setdefault("returns", returns)
+            return returns
+
+        return optimize(wrapped, mean, var, constrain, generator)
+
+    model.planner.optimizer.optimize = spy
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no fallback warning: finite candidates existed
+        action, _ = model.predict(np.array([1.0, 0.0, 0.0], dtype=np.float32))
+    assert th.isnan(z_seen["returns"][0, :20]).all() and th.isfinite(z_seen["returns"][0, 20:]).all()
+    assert np.isfinite(action).all()
+
+
+@pytest.mark.parametrize("variant", ["pets", "rs", "poplin-a", "poplin-p"])
+def test_all_diverged_falls_back_warns_once_and_counts(variant, tmp_path):
+    model = POPLIN(variant, "Pendulum-v1", seed=0, **TINY)
+    nan_model(model, 1.0)
+    obs = np.array([[0.6, 0.8, -1.0], [1.0, 0.0, 0.0]], dtype=np.float32)
+    with pytest.warns(UserWarning, match="No planned candidate had a finite return"):
+        action, state = model.predict(obs)
+    if variant.startswith("poplin"):
+        model.control = "policy"
+        np.testing.assert_allclose(action, model.predict(obs)[0], atol=1e-6)  # the policy's action
+        model.control = "mpc"
+    else:
+        np.testing.assert_array_equal(action, np.zeros((2, 1)))  # the action-space centre
+    assert th.equal(state, th.zeros_like(state))  # the failed plan is not carried over
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # warned once only
+        model.predict(obs)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model._record_plan_stats()
+    assert model.logger.name_to_value["plan/fallbacks"] == 4
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    variant=st.sampled_from(["pets", "rs", "poplin-a", "poplin-p"]),
+    horizon=st.integers(1, 4),
+    population=st.integers(2, 12),
+    elite_fraction=st.floats(0.01, 1.0),
+    iterations=st.integers(1, 3),
+    alpha=st.floats(0.0, 0.99),
+    init_var=st.floats(1e-4, 4.0),
+    propagation=st.sampled_from(["expectation", "ts1", "tsinf", "ds"]),
+    obs=st.lists(st.floats(-1e6, 1e6) | st.sampled_from([np.nan, np.inf, -np.inf]), min_size=4, max_size=4),
+    seed=st.integers(0, 2**16),
+)
+def test_predict_is_always_finite_and_in_bounds(
+    variant, horizon, population, elite_fraction, iterations, alpha, init_var, propagation, obs, seed
+):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = POPLIN(
+            variant,
+            "InvertedPendulum-v5",  # action bounds +-3
+            seed=seed,
+            horizon=horizon,
+            population_size=population,
+            num_elites=max(1, int(population * elite_fraction)),
+            cem_iterations=iterations,
+            cem_alpha=alpha,
+            init_var=init_var,
+            propagation=propagation,
+            num_particles=2,
+            ensemble_size=2,
+            dynamics_net_arch=(8,),
+        )
+        action, _ = model.predict(np.array(obs, dtype=np.float32))
+    assert np.isfinite(action).all() and np.all(np.abs(action) <= 3.0)
+
+
+# ---------------------------------------------------------------- save / load / resume, determinism
+def parameters(model):
+    return {k: v.clone() for k, v in model.policy.state_dict().items()}
+
+
+def assert_same_parameters(a, b):
+    assert a.keys() == b.keys()
+    for key in a:
+        assert th.equal(a[key], b[key]), key
+
+
+def test_save_load_restores_everything(tmp_path):
+    model = POPLIN("poplin-p", "Pendulum-v1", seed=0, distillation="gan", **TINY)
+    model.learn(400)
+    obs = np.array([0.6, 0.8, -1.0], dtype=np.float32)
+    model.predict(obs)  # a warm start exists now
+    model.save(tmp_path / "agent")
+    loaded = POPLIN.load(tmp_path / "agent")
+    assert_same_parameters(parameters(model), parameters(loaded))
+    for name in ("dynamics_optimizer", "actor_optimizer", "discriminator_optimizer"):
+        a, b = getattr(model.policy, name).state_dict(), getattr(loaded.policy, name).state_dict()
+        for key in a["state"]:
+            for tensor_name, tensor in a["state"][key].items():
+                assert th.equal(tensor, b["state"][key][tensor_name]), (name, key, tensor_name)
+    assert th.equal(model._warm_start, loaded._warm_start)
+    assert th.equal(model._generator.get_state(), loaded._generator.get_state())
+    # same warm start and same random state: the next plan is identical without reseeding
+    np.testing.assert_array_equal(model.predict(obs)[0], loaded.predict(obs)[0])
+
+
+def test_resume_equals_an_uninterrupted_run(tmp_path):
+    """2N steps == N steps, save (agent + replay buffer), load, N more steps; N a whole number of episodes."""
+
+    def fresh_env():
+        return make_vec_env("Pendulum-v1", n_envs=1, seed=0)
+
+    straight = POPLIN("poplin-a", fresh_env(), seed=0, **TINY)
+    straight.learn(800)
+
+    env = fresh_env()
+    first = POPLIN("poplin-a", env, seed=0, **TINY)
+    first.learn(400)
+    first.save(tmp_path / "agent")
+    first.save_replay_buffer(tmp_path / "buffer")
+    # The env object continues where it was (its RNG state). force_reset=False keeps the saved last observation
+    # (the auto-reset one after step 400); SB3's default would reset the env once more and draw another start state.
+    resumed = POPLIN.load(tmp_path / "agent", env=env, force_reset=False)
+    resumed.load_replay_buffer(tmp_path / "buffer")
+    resumed.learn(400, reset_num_timesteps=False)
+
+    assert resumed.num_timesteps == straight.num_timesteps == 800
+    assert_same_parameters(parameters(straight), parameters(resumed))
+    np.testing.assert_array_equal(straight.replay_buffer.actions[:800], resumed.replay_buffer.actions[:800])
+
+
+def test_two_seeded_runs_are_identical():
+    runs = []
+    for _ in range(2):
+        model = POPLIN("poplin-p", "Pendulum-v1", seed=3, distillation="bc", **TINY)
+        model.learn(600)
+        returns = [info["r"] for info in model.ep_info_buffer]
+        runs.append((parameters(model), returns, model.replay_buffer.actions[:600].copy()))
+    assert_same_parameters(runs[0][0], runs[1][0])
+    assert runs[0][1] == runs[1][1]
+    np.testing.assert_array_equal(runs[0][2], runs[1][2])
+
+
+# ---------------------------------------------------------------- interruptions
+class StopAt(BaseCallback):
+    def __init__(self, step, error=False):
+        super().__init__()
+        self.step, self.error = step, error
+
+    def _on_step(self):
+        if self.num_timesteps >= self.step:
+            if self.error:
+                raise RuntimeError("interrupted")
+            return False
+        return True
+
+
+@pytest.mark.parametrize("error", [False, True])
+def test_interrupted_training_leaves_a_usable_model(tmp_path, error):
+    model = POPLIN("poplin-p", "Pendulum-v1", seed=0, **TINY)
+    if error:
+        with pytest.raises(RuntimeError, match="interrupted"):
+            model.learn(1000, callback=StopAt(300, error=True))
+    else:
+        model.learn(1000, callback=StopAt(300))
+    assert model.num_timesteps == 300 and not model._collecting
+    action, _ = model.predict(np.array([1.0, 0.0, 0.0], dtype=np.float32))
+    assert np.isfinite(action).all()
+    model.save(tmp_path / "agent")
+    model.learn(300, reset_num_timesteps=False)
+    assert model.num_timesteps >= 600
