@@ -110,7 +110,7 @@ def test_loading_a_zip_with_a_corrupted_member(saved):
     assert offset > 0 and raw.count(weights[middle : middle + 64]) == 1
     raw[offset + 10] ^= 0xFF
     (saved / "bad_crc.zip").write_bytes(bytes(raw))
-    with pytest.raises(ValueError, match="'policy.pth' fails the CRC check"):
+    with pytest.raises(ValueError, match=r"'policy\.pth' fails the CRC check"):
         POPLIN.load(saved / "bad_crc.zip")
 
 
