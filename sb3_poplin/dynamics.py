@@ -58,6 +58,25 @@ class EnsembleLinear(nn.Module):
         return th.baddbmm(self.bias, x, self.weight)
 
 
+class StepNoise(NamedTuple):
+    """
+    The randomness of one propagation step for ``[N, P]`` particles, drawn up front so that
+    evaluating the candidates in chunks gives exactly the same result as all at once.
+    """
+
+    order: th.Tensor | None  # [N, P] particle order (ts1 / ds): the first P/E particles go to member 0, ...
+    eps: th.Tensor | None  # [N, P, out] standard normal for sampling the Gaussian heads
+    resample: th.Tensor | None  # [N, P, out] standard normal for ds's moment-matched resampling
+
+    def rows(self, index: slice) -> StepNoise:
+        """The noise of a slice of candidates (dim 1 of ``[n_envs, N, P, ...]`` tensors)."""
+        return StepNoise(*(None if t is None else t[:, index] for t in self))
+
+    def flatten(self) -> StepNoise:
+        """``[n_envs, N, P, ...]`` -> ``[n_envs * N, P, ...]``."""
+        return StepNoise(*(None if t is None else t.flatten(0, 1) for t in self))
+
+
 class FitResult(NamedTuple):
     """Summary of one call to :meth:`ProbabilisticEnsemble.fit`."""
 
@@ -150,12 +169,32 @@ class ProbabilisticEnsemble(nn.Module):
         return normalised * self.target_std + self.target_mean
 
     # ------------------------------------------------------------------ propagation
+    def draw_noise(
+        self, shape: tuple[int, ...], propagation: str, device: th.device, generator: th.Generator | None = None
+    ) -> StepNoise:
+        """
+        The randomness :meth:`propagate` needs for particles of the given leading shape (e.g. ``[N, P]``).
+
+        :param shape: leading shape of the particles, ending with the particle dimension P
+        :param propagation: one of :data:`PROPAGATIONS`
+        :param device: where to draw
+        :param generator: random generator
+        """
+        if propagation == "expectation":
+            return StepNoise(None, None, None)
+        out = (*shape, self.out_dim)
+        order = th.rand(shape, device=device, generator=generator).argsort(dim=-1) if propagation in ("ts1", "ds") else None
+        eps = th.randn(out, device=device, generator=generator)
+        resample = th.randn(out, device=device, generator=generator) if propagation == "ds" else None
+        return StepNoise(order, eps, resample)
+
     def propagate(
         self,
         states: th.Tensor,
         actions: th.Tensor,
         propagation: str,
         generator: th.Generator | None = None,
+        noise: StepNoise | None = None,
     ) -> tuple[th.Tensor, th.Tensor | None]:
         """
         One imagined step for a batch of candidates, each with ``P`` particles.
@@ -172,7 +211,8 @@ class ProbabilisticEnsemble(nn.Module):
         :param states: ``[N, P, o]`` raw observations
         :param actions: ``[N, P, a]`` scaled actions
         :param propagation: one of :data:`PROPAGATIONS`
-        :param generator: random generator for sampling
+        :param generator: random generator for sampling (when ``noise`` is not given)
+        :param noise: this step's randomness from :meth:`draw_noise` (``[N, P]`` particles), drawn here if None
         :return: next states ``[N, P, o]`` and, with ``learned_reward``, predicted rewards ``[N, P]``
         """
         n, p, _ = states.shape
@@ -182,24 +222,27 @@ class ProbabilisticEnsemble(nn.Module):
             mean, _ = self(x.reshape(1, n * p, self.in_dim).expand(e, -1, -1))  # [E, N*P, out]
             out = self._to_delta(mean.mean(dim=0)).view(n, p, self.out_dim)
         else:
+            if noise is None:
+                noise = self.draw_noise((n, p), propagation, x.device, generator)
+            assert noise.eps is not None
             per_member = p // e
-            if propagation in ("ts1", "ds"):
-                order = th.rand(n, p, device=x.device, generator=generator).argsort(dim=1)  # [N, P]
-                x = th.take_along_dim(x, order.unsqueeze(-1), dim=1)
-            # [N, P, in] -> [N, E, P/E, in] -> [E, N * P/E, in]
-            xe = x.view(n, e, per_member, self.in_dim).transpose(0, 1).reshape(e, n * per_member, self.in_dim)
-            mean, logvar = self(xe)
-            noise = th.randn(mean.shape, device=mean.device, dtype=mean.dtype, generator=generator)
-            sample = mean + (0.5 * logvar).exp() * noise  # [E, N * P/E, out]
+            eps = noise.eps
+            if noise.order is not None:  # ts1 / ds: a fresh particle-to-member assignment
+                x = th.take_along_dim(x, noise.order.unsqueeze(-1), dim=1)
+                eps = th.take_along_dim(eps, noise.order.unsqueeze(-1), dim=1)
+
+            def by_member(t: th.Tensor) -> th.Tensor:  # [N, P, d] -> [N, E, P/E, d] -> [E, N * P/E, d]
+                return t.view(n, e, per_member, t.shape[-1]).transpose(0, 1).reshape(e, n * per_member, t.shape[-1])
+
+            mean, logvar = self(by_member(x))
+            sample = mean + (0.5 * logvar).exp() * by_member(eps)  # [E, N * P/E, out]
             out = self._to_delta(sample.view(e, n, per_member, self.out_dim).transpose(0, 1).reshape(n, p, self.out_dim))
-            if propagation in ("ts1", "ds"):
-                inverse = order.argsort(dim=1)
-                out = th.take_along_dim(out, inverse.unsqueeze(-1), dim=1)
-            if propagation == "ds":
+            if noise.order is not None:
+                out = th.take_along_dim(out, noise.order.argsort(dim=1).unsqueeze(-1), dim=1)
+            if noise.resample is not None:  # ds: resample from the particles' moments
                 mu = out.mean(dim=1, keepdim=True)
                 std = out.std(dim=1, keepdim=True, unbiased=False)
-                noise = th.randn(out.shape, device=out.device, dtype=out.dtype, generator=generator)
-                out = mu + std * noise
+                out = mu + std * noise.resample
         next_states = states + out[..., : self.obs_dim]
         rewards = out[..., self.obs_dim] if self.learned_reward else None
         return next_states, rewards

@@ -23,7 +23,7 @@ from typing import Any, NamedTuple
 
 import torch as th
 
-from sb3_poplin.dynamics import ProbabilisticEnsemble
+from sb3_poplin.dynamics import ProbabilisticEnsemble, StepNoise
 from sb3_poplin.policies import PolicyNetwork
 from sb3_poplin.tasks import RewardFn, TerminationFn
 
@@ -381,6 +381,10 @@ class MPCPlanner:
     :param num_particles: particles per candidate (1 with ``"expectation"``)
     :param action_low: env lower bounds ``[A]``
     :param action_high: env upper bounds ``[A]``
+    :param dtype: ``th.float32``, or ``th.bfloat16`` to run the networks' matmuls in bf16 (fp32 accumulation)
+    :param max_batch_rows: upper bound on the rows pushed through the ensemble at once (per candidate:
+        its particles, or the E members with ``"expectation"``); larger populations are evaluated in chunks
+        of candidates, with identical results. ``None``: no bound.
     """
 
     def __init__(
@@ -394,9 +398,15 @@ class MPCPlanner:
         num_particles: int,
         action_low: th.Tensor,
         action_high: th.Tensor,
+        dtype: th.dtype = th.float32,
+        max_batch_rows: int | None = None,
     ) -> None:
         if reward_fn is None and not model.learned_reward:
             raise ValueError("The planner needs a reward: pass reward_fn or use a model with learned_reward=True.")
+        if dtype not in (th.float32, th.bfloat16):
+            raise ValueError(f"Planning dtype must be float32 or bfloat16, got {dtype}")
+        if max_batch_rows is not None and max_batch_rows < 1:
+            raise ValueError(f"max_batch_rows must be >= 1 or None, got {max_batch_rows}")
         self.model = model
         self.search_space = search_space
         self.optimizer = optimizer
@@ -406,14 +416,48 @@ class MPCPlanner:
         self.num_particles = 1 if propagation == "expectation" else num_particles
         self.action_low = action_low
         self.action_scale = (action_high - action_low) / 2.0
+        self.dtype = dtype
+        self.max_batch_rows = max_batch_rows
 
     def to_env_units(self, scaled: th.Tensor) -> th.Tensor:
         """Map scaled actions in [-1, 1] to env units."""
         return self.action_low + (scaled + 1.0) * self.action_scale
 
+    def _step(
+        self, z: th.Tensor, t: int, states: th.Tensor, context: Any, noise: StepNoise
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor | None]:
+        """
+        One imagined step for a chunk of candidates.
+
+        :param z: search vectors ``[n_envs, n, D]``
+        :param states: imagined states ``[n_envs, n, P, o]``
+        :return: next states ``[n_envs, n, P, o]``, rewards ``[n_envs, n, P]`` and terminations (or None)
+        """
+        n_envs, pop, p, o = states.shape
+        actions = self.search_space.actions(z, t, states, context)  # [n_envs, n, P, A]
+        flat_states, flat_actions = states.reshape(n_envs * pop, p, o), actions.reshape(n_envs * pop, p, -1)
+        with th.autocast(states.device.type, dtype=th.bfloat16, enabled=self.dtype == th.bfloat16):
+            next_flat, model_reward = self.model.propagate(flat_states, flat_actions, self.propagation, noise=noise.flatten())
+        next_flat = next_flat.float()
+        transition = (
+            flat_states.reshape(-1, o),
+            self.to_env_units(flat_actions.reshape(-1, actions.shape[-1])),
+            next_flat.reshape(-1, o),
+        )
+        if self.reward_fn is None:
+            assert model_reward is not None
+            reward = model_reward.float()
+        else:
+            reward = self.reward_fn(*transition)
+        done = None if self.termination_fn is None else self.termination_fn(*transition).view(n_envs, pop, p)
+        return next_flat.view(n_envs, pop, p, o), reward.reshape(n_envs, pop, p), done
+
     def rollout(self, obs: th.Tensor, z: th.Tensor, context: Any, generator: th.Generator | None = None) -> th.Tensor:
         """
         Mean return over particles of each candidate, through the learned model.
+
+        The horizon loop is outside, the candidate chunks inside: each step's randomness is drawn
+        for all candidates at once, so the chunk size never changes the result.
 
         :param obs: real observations ``[n_envs, o]``
         :param z: search vectors ``[n_envs, N, D]``
@@ -423,28 +467,29 @@ class MPCPlanner:
         """
         n_envs, pop, _ = z.shape
         p, o = self.num_particles, obs.shape[-1]
+        rows_per_candidate = n_envs * (self.model.ensemble_size if self.propagation == "expectation" else p)
+        chunk = pop if self.max_batch_rows is None else max(1, min(pop, self.max_batch_rows // rows_per_candidate))
         states = obs.view(n_envs, 1, 1, o).expand(n_envs, pop, p, o)  # [n_envs, N, P, o]
         total = th.zeros(n_envs, pop, p, device=obs.device)
         alive = th.ones(n_envs, pop, p, dtype=th.bool, device=obs.device)
         for t in range(self.search_space.horizon):
-            actions = self.search_space.actions(z, t, states, context)  # [n_envs, N, P, A]
-            flat_states = states.reshape(n_envs * pop, p, o)
-            flat_actions = actions.reshape(n_envs * pop, p, -1)
-            next_flat, model_reward = self.model.propagate(flat_states, flat_actions, self.propagation, generator)
-            transition = (
-                flat_states.reshape(-1, o),
-                self.to_env_units(flat_actions.reshape(-1, flat_actions.shape[-1])),
-                next_flat.reshape(-1, o),
-            )
-            if self.reward_fn is None:
-                assert model_reward is not None
-                reward = model_reward.reshape(n_envs, pop, p)
-            else:
-                reward = self.reward_fn(*transition).reshape(n_envs, pop, p)
-            total = total + th.where(alive, reward, th.zeros_like(reward))
+            noise = self.model.draw_noise((n_envs, pop, p), self.propagation, obs.device, generator)
+            parts = [
+                self._step(
+                    z[:, start : start + chunk],
+                    t,
+                    states[:, start : start + chunk],
+                    context,
+                    noise.rows(slice(start, start + chunk)),
+                )
+                for start in range(0, pop, chunk)
+            ]
+            states = th.cat([part[0] for part in parts], dim=1) if len(parts) > 1 else parts[0][0]
+            reward = th.cat([part[1] for part in parts], dim=1) if len(parts) > 1 else parts[0][1]
+            total += th.where(alive, reward, th.zeros_like(reward))
             if self.termination_fn is not None:
-                alive = alive & ~self.termination_fn(*transition).reshape(n_envs, pop, p)
-            states = next_flat.view(n_envs, pop, p, o)
+                done = th.cat([part[2] for part in parts], dim=1)  # type: ignore[misc]
+                alive &= ~done
         return total.mean(dim=2)
 
     @th.inference_mode()

@@ -56,6 +56,7 @@ from sb3_poplin.tasks import RewardFn, TerminationFn, has_task, make_task
 SelfPOPLIN = TypeVar("SelfPOPLIN", bound="POPLIN")
 
 CONTROLS = ("mpc", "policy")
+PLANNING_DTYPES = {"float32": th.float32, "bfloat16": th.bfloat16}
 # variant -> initial CEM variance of its search space (the paper's demo settings)
 DEFAULT_INIT_VAR = {"pets": 0.25, "rs": 0.25, "poplin-a": 0.25, "poplin-p": 0.1}
 # variant -> default hidden widths of the policy network (None: the variant has none)
@@ -181,6 +182,10 @@ class POPLIN(OffPolicyAlgorithm):
         or ``"ds"`` (PETS trajectory sampling / distribution sampling with ``num_particles``)
     :param num_particles: particles per candidate for the sampling propagations; a multiple of
         ``ensemble_size``
+    :param planning_dtype: ``"float32"``, or ``"bfloat16"`` to run the planner's network matmuls in bf16 with
+        fp32 accumulation (faster on CPUs with bf16 units and on GPUs; returns are summed in fp32)
+    :param max_batch_rows: bound on the rows pushed through the ensemble at once while planning; larger
+        populations are evaluated in chunks (identical results, flat memory). ``None``: no bound
     :param model_epochs: epochs over all data at every model fit
     :param model_batch_size: minibatch size of the model fit (per member)
     :param model_learning_rate: Adam learning rate of the model
@@ -235,6 +240,8 @@ class POPLIN(OffPolicyAlgorithm):
         dynamics_net_arch: Sequence[int] = (200, 200, 200, 200),
         propagation: str = "expectation",
         num_particles: int = 20,
+        planning_dtype: str = "float32",
+        max_batch_rows: int | None = 65536,
         model_epochs: int = 5,
         model_batch_size: int = 32,
         model_learning_rate: float = 1e-3,
@@ -283,6 +290,8 @@ class POPLIN(OffPolicyAlgorithm):
         self.dynamics_net_arch = list(dynamics_net_arch)
         self.propagation = propagation
         self.num_particles = num_particles
+        self.planning_dtype = planning_dtype
+        self.max_batch_rows = max_batch_rows
         self.model_epochs = model_epochs
         self.model_batch_size = model_batch_size
         self.model_learning_rate = model_learning_rate
@@ -348,6 +357,10 @@ class POPLIN(OffPolicyAlgorithm):
                 f"num_particles ({self.num_particles}) must be a positive multiple of ensemble_size "
                 f"({self.ensemble_size}) so that each member gets the same number of particles"
             )
+        if self.planning_dtype not in PLANNING_DTYPES:
+            raise ValueError(f"Unknown planning_dtype {self.planning_dtype!r}; accepted values: {list(PLANNING_DTYPES)}")
+        if self.max_batch_rows is not None and self.max_batch_rows < 1:
+            raise ValueError(f"max_batch_rows must be >= 1 (or None for no bound), got {self.max_batch_rows}")
         if not 0.0 <= self.holdout_ratio < 1.0:
             raise ValueError(f"holdout_ratio must be in [0, 1), got {self.holdout_ratio}")
         self._check_policy_settings()
@@ -462,6 +475,8 @@ class POPLIN(OffPolicyAlgorithm):
             num_particles=self.num_particles,
             action_low=th.as_tensor(self.action_space.low, dtype=th.float32, device=self.device),
             action_high=th.as_tensor(self.action_space.high, dtype=th.float32, device=self.device),
+            dtype=PLANNING_DTYPES[self.planning_dtype],
+            max_batch_rows=self.max_batch_rows,
         )
         self._warm_start: th.Tensor | None = None
         self._plan_return_sum = th.zeros((), device=self.device)
