@@ -39,8 +39,10 @@ _PHI_PLUS_2 = 0.5 * (1.0 + math.erf(2.0 / math.sqrt(2.0)))
 
 def truncated_normal(shape: tuple[int, ...], device: th.device, generator: th.Generator | None = None) -> th.Tensor:
     """Standard normal samples truncated to [-2, 2] (exact, by inverting the CDF)."""
-    u = th.rand(shape, device=device, generator=generator) * (_PHI_PLUS_2 - _PHI_MINUS_2) + _PHI_MINUS_2
-    return (math.sqrt(2.0) * th.erfinv(2.0 * u - 1.0)).clamp_(-2.0, 2.0)
+    # one allocation, then in-place passes: u ~ U(Phi(-2), Phi(2)); x = sqrt(2) erfinv(2u - 1)
+    x = th.rand(shape, device=device, generator=generator)
+    x.mul_(2.0 * (_PHI_PLUS_2 - _PHI_MINUS_2)).add_(2.0 * _PHI_MINUS_2 - 1.0).erfinv_()
+    return x.mul_(math.sqrt(2.0)).clamp_(-2.0, 2.0)
 
 
 class OptimizerResult(NamedTuple):
@@ -109,8 +111,9 @@ class CEM:
         found = th.zeros(n_envs, dtype=th.bool, device=mean.device)
         for _ in range(self.iterations):
             std = constrain_var(mean, var).sqrt()
-            noise = self._noise((n_envs, self.population_size, dim), mean.device, generator)
-            z = mean.unsqueeze(1) + std.unsqueeze(1) * noise  # [n_envs, N, D]
+            # z = mean + std * noise, in place on the fresh noise tensor: [n_envs, N, D]
+            z = self._noise((n_envs, self.population_size, dim), mean.device, generator)
+            z.mul_(std.unsqueeze(1)).add_(mean.unsqueeze(1))
             returns = evaluate(z)  # [n_envs, N]
             returns = th.where(th.isfinite(returns), returns, th.full_like(returns, -math.inf))
             top, idx = returns.topk(self.num_elites, dim=1)  # [n_envs, K]

@@ -40,6 +40,7 @@ from sb3_poplin.distillation import DISTILLATIONS, average_perturbation, behavio
 from sb3_poplin.dynamics import PROPAGATIONS
 from sb3_poplin.planning import (
     CEM,
+    PlanResult,
     NOISES,
     PROPOSALS,
     SAMPLINGS,
@@ -171,6 +172,9 @@ class POPLIN(OffPolicyAlgorithm):
         POPLIN-A ``"bc"``; POPLIN-P ``"avg"`` (default), ``"bc"`` or ``"gan"``; ``None`` for the default
     :param distill_imagined: also distill the final CEM elites' first steps ("imagined" data);
         ``None``: POPLIN-A yes (BC-AI), POPLIN-P no
+    :param distill_window: BC and GAN train on the most recent ``distill_window`` planned real steps (the
+        actions the planner executed, which stay valid targets as the policy changes); ``None``: only the steps
+        since the last distillation, as in the original code. Avg always uses the steps since the last update.
     :param policy_net_arch: hidden widths of the policy network (tanh); ``None``: POPLIN-A [64, 64], POPLIN-P [32]
     :param policy_learning_rate: Adam learning rate of the policy network (and the GAN discriminator)
     :param policy_epochs: maximum BC epochs per distillation (early stopping on a 20 % holdout), or GAN epochs
@@ -232,6 +236,7 @@ class POPLIN(OffPolicyAlgorithm):
         noise: str = "sep",
         distillation: str | None = None,
         distill_imagined: bool | None = None,
+        distill_window: int | None = 10_000,
         policy_net_arch: Sequence[int] | None = None,
         policy_learning_rate: float = 3e-3,
         policy_epochs: int | None = None,
@@ -282,6 +287,7 @@ class POPLIN(OffPolicyAlgorithm):
         self.noise = noise
         self.distillation = distillation
         self.distill_imagined = distill_imagined
+        self.distill_window = distill_window
         self.policy_net_arch = None if policy_net_arch is None else list(policy_net_arch)
         self.policy_learning_rate = policy_learning_rate
         self.policy_epochs = policy_epochs
@@ -380,7 +386,7 @@ class POPLIN(OffPolicyAlgorithm):
             raise ValueError(
                 f"Unknown distillation {self.distillation!r} for {self.variant!r}; accepted values: {list(accepted)}"
             )
-        for name in ("policy_epochs", "policy_batch_size"):
+        for name in ("policy_epochs", "policy_batch_size", "distill_window"):
             value = getattr(self, name)
             if value is not None and (not isinstance(value, (int, np.integer)) or value < 1):
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
@@ -487,8 +493,10 @@ class POPLIN(OffPolicyAlgorithm):
         if saved is not None:
             self._restore_planner_state(saved)
         self._collecting = False  # True while SB3's rollout collection asks for an action
-        # planned real steps since the last distillation: (states, first blocks, elites' first blocks)
-        self._planned: list[tuple[th.Tensor, th.Tensor, th.Tensor | None]] = []
+        # planned real steps since the last distillation (one dict of tensors per planned step)
+        self._planned: list[dict[str, th.Tensor]] = []
+        # the BC/GAN dataset: the most recent `distill_window` planned steps (states, actions, imagined actions)
+        self._distill_data: dict[str, th.Tensor] = {}
 
     def set_random_seed(self, seed: int | None = None) -> None:
         """Seed python, numpy, torch, the action space and the planner's generator."""
@@ -556,13 +564,31 @@ class POPLIN(OffPolicyAlgorithm):
         if fallback.any():
             self._on_fallback(int(fallback.sum()))
         if self._collecting and self.policy.actor is not None:
-            keep = th.as_tensor(~fallback, device=self.device)  # a failed plan says nothing to distill
-            first_block = self.planner.search_space.first_block
-            elites = first_block(result.elites)[keep] if self.distill_imagined else None
-            self._planned.append((obs[keep], first_block(result.solution)[keep], elites))
+            self._record_planned_step(obs, result, th.as_tensor(~fallback, device=self.device))
         if not vectorized:
             actions = actions.squeeze(0)
         return actions, result.next_mean
+
+    def _record_planned_step(self, obs: th.Tensor, result: PlanResult, keep: th.Tensor) -> None:
+        """
+        Keep what distillation needs of a planned real step (a failed plan says nothing): the state and
+        the executed action; for Avg the executed perturbation block; with ``distill_imagined`` the final
+        elites' first actions (or blocks), computed now with the policy the planner used.
+        """
+        space = self.planner.search_space
+        states = obs[keep]
+        record = {"states": states, "actions": result.action[keep]}
+        if self.distillation == "avg":
+            record["blocks"] = space.first_block(result.solution)[keep]
+        if self.distill_imagined:
+            elite_blocks = space.first_block(result.elites)[keep]  # [b, K, block]
+            if self.distillation == "avg":
+                record["elite_blocks"] = elite_blocks
+            else:
+                b, k = elite_blocks.shape[:2]
+                imagined = space.executed_action(elite_blocks.flatten(0, 1), states.repeat_interleave(k, dim=0), None)
+                record["imagined"] = imagined.view(b, k, -1)  # [b, K, A]
+        self._planned.append(record)
 
     def _on_fallback(self, count: int) -> None:
         self._fallbacks += count
@@ -627,52 +653,56 @@ class POPLIN(OffPolicyAlgorithm):
         return flat(buffer.observations), flat(buffer.actions), flat(buffer.next_observations), flat(buffer.rewards)[:, 0]
 
     def _distill(self) -> dict[str, float]:
-        """Train the policy network from the planned steps recorded since the last call."""
+        """Train the policy network from the planned steps (Avg: those since the last call; BC/GAN: the window)."""
         actor = self.policy.actor
         if actor is None or not self._planned:
             return {}
-        states = th.cat([step[0] for step in self._planned])  # [B, o]
-        blocks = th.cat([step[1] for step in self._planned])  # [B, block]
-        if self.distill_imagined:
-            elites = th.cat([step[2] for step in self._planned if step[2] is not None])  # [B, K, block]
-            k = elites.shape[1]
-            all_states = th.cat([states, states.repeat_interleave(k, dim=0)])
-            blocks = th.cat([blocks, elites.reshape(-1, blocks.shape[1])])
-        else:
-            all_states = states
+        new = {key: th.cat([record[key] for record in self._planned]) for key in self._planned[0]}
         self._planned = []
-        if self.distillation == "avg":
+        if self.distillation == "avg":  # perturbations are relative to the theta they were planned with
+            blocks = new["blocks"]
+            if "elite_blocks" in new:
+                blocks = th.cat([blocks, new["elite_blocks"].flatten(0, 1)])
             stats = average_perturbation(actor, blocks)
-            actor.update_whitening(states)
+            actor.update_whitening(new["states"])
             return stats
-        with th.no_grad():  # what the planner meant, with the policy as it was while planning
-            targets = self.planner.search_space.executed_action(blocks, all_states, None)
-        actor.update_whitening(states)  # changes the parametrisation, not the function
+        for key, value in new.items():
+            kept = th.cat([self._distill_data[key], value]) if key in self._distill_data else value
+            self._distill_data[key] = kept if self.distill_window is None else kept[-self.distill_window :]
+        data = new if self.distill_window is None else self._distill_data
+        states, targets = data["states"], data["actions"]
+        if "imagined" in data:
+            k = data["imagined"].shape[1]
+            states = th.cat([states, states.repeat_interleave(k, dim=0)])
+            targets = th.cat([targets, data["imagined"].flatten(0, 1)])
+        actor.update_whitening(new["states"])  # changes the parametrisation, not the function
         assert self.policy_epochs is not None
         with th.enable_grad():
             if self.distillation == "gan":
                 assert self.policy.discriminator is not None and self.init_var is not None
-                return gan_distillation(
+                stats = gan_distillation(
                     actor,
                     self.policy.actor_optimizer,
                     self.policy.discriminator,
                     self.policy.discriminator_optimizer,
-                    all_states,
+                    states,
                     targets,
                     noise_var=self.init_var,
                     epochs=self.policy_epochs,
                     batch_size=self.policy_batch_size,
                     generator=self._generator,
                 )
-            return behaviour_cloning(
-                actor,
-                self.policy.actor_optimizer,
-                all_states,
-                targets,
-                epochs=self.policy_epochs,
-                batch_size=self.policy_batch_size,
-                generator=self._generator,
-            )
+            else:
+                stats = behaviour_cloning(
+                    actor,
+                    self.policy.actor_optimizer,
+                    states,
+                    targets,
+                    epochs=self.policy_epochs,
+                    batch_size=self.policy_batch_size,
+                    generator=self._generator,
+                )
+        return {**stats, "policy_samples": float(states.shape[0])}
 
     def train(self, gradient_steps: int, batch_size: int) -> None:
         """Refit the dynamics model on all data (``model_epochs`` epochs), then distill the policy."""
@@ -729,6 +759,7 @@ class POPLIN(OffPolicyAlgorithm):
             warnings.warn("The planner's random state was saved on another device and is not restored.", stacklevel=2)
         warm = saved.get("warm_start")
         self._warm_start = None if warm is None else warm.to(self.device)
+        self._distill_data = {key: value.to(self.device) for key, value in saved.get("distill_data", {}).items()}
 
     def save(
         self,
@@ -742,7 +773,11 @@ class POPLIN(OffPolicyAlgorithm):
         replay buffer: ``save_replay_buffer``).
         """
         warm = None if self._warm_start is None else self._warm_start.detach().cpu()
-        self._saved_planner_state = {"generator": self._generator.get_state(), "warm_start": warm}
+        self._saved_planner_state = {
+            "generator": self._generator.get_state(),
+            "warm_start": warm,
+            "distill_data": {key: value.detach().cpu() for key, value in self._distill_data.items()},
+        }
         try:
             super().save(path, exclude, include)
         finally:
@@ -773,7 +808,15 @@ class POPLIN(OffPolicyAlgorithm):
         return model
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "planner", "_generator", "_warm_start", "_plan_return_sum", "_planned"]
+        return [
+            *super()._excluded_save_params(),
+            "planner",
+            "_generator",
+            "_warm_start",
+            "_plan_return_sum",
+            "_planned",
+            "_distill_data",
+        ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", *self.policy.optimizer_names()], []

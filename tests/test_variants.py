@@ -205,9 +205,15 @@ def test_only_planned_steps_are_distilled(monkeypatch):
         return original(policy, optimizer, states, targets, **kwargs)
 
     monkeypatch.setattr(poplin_module, "behaviour_cloning", spy)
-    model = POPLIN("poplin-a", "Pendulum-v1", seed=0, distill_imagined=False, **TINY)
+    model = POPLIN("poplin-a", "Pendulum-v1", seed=0, distill_imagined=False, distill_window=None, **TINY)
     model.learn(600)  # a random episode, then two planned ones; a fit after each
     assert seen == [200, 200]  # fit 1: nothing planned yet; fits 2 and 3: that episode's 200 planned states
+    seen.clear()
+    model = POPLIN("poplin-a", "Pendulum-v1", seed=0, distill_imagined=False, distill_window=300, **TINY)
+    model.learn(800)
+    assert seen == [200, 300, 300]  # the most recent 300 planned steps
+    # the executed actions (the buffer holds them after a scale round trip)
+    assert th.allclose(model._distill_data["actions"], th.as_tensor(model.replay_buffer.actions[500:800, 0]), atol=1e-6)
     model = POPLIN("poplin-a", "Pendulum-v1", seed=0, **TINY)  # BC-AI: plus the 4 elites of every planned step
     seen.clear()
     model.learn(400)

@@ -1,0 +1,251 @@
+"""
+Planner speed at the paper setting, against this machine's own matmul peak (measured in the same
+process, at the same thread count). Adds one row per run to benchmarks/RESULTS.md.
+
+    python benchmarks/planning_speed.py [--threads 1] [--repeats 5] [--quick]
+
+Paper setting: HalfCheetah-v5 sizes, population 500, horizon 30, 5 CEM iterations, 50 elites, a
+5-member 4x200 ensemble; expectation propagation and 20-particle TS-infinity; PETS, POPLIN-A (init)
+and POPLIN-P (sep, [32] policy); fp32 and bf16. FLOPs are counted analytically from the layer shapes
+(2 * d_in * d_out per row and layer; biases and activations not counted).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+import warnings
+
+import numpy as np
+import torch as th
+from stable_baselines3 import SAC
+
+from sb3_poplin import POPLIN
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from results_file import append_row
+
+ENV_ID = "HalfCheetah-v5"
+PAPER = dict(horizon=30, population_size=500, num_elites=50, cem_iterations=5, ensemble_size=5)
+RUNS = [
+    ("pets", dict(policy="pets"), "expectation", "float32"),
+    ("pets", dict(policy="pets"), "expectation", "bfloat16"),
+    ("pets", dict(policy="pets"), "tsinf", "float32"),
+    ("pets", dict(policy="pets"), "tsinf", "bfloat16"),
+    ("poplin-a/init", dict(policy="poplin-a", proposal="init"), "expectation", "float32"),
+    ("poplin-p/sep", dict(policy="poplin-p", noise="sep"), "expectation", "float32"),
+    ("poplin-p/sep", dict(policy="poplin-p", noise="sep"), "expectation", "bfloat16"),
+]
+
+
+def matmul_peak(dtype: th.dtype, size: int = 2048, repeats: int = 5) -> float:
+    """Best GFLOP/s of a square matmul (the roofline the planner is measured against)."""
+    a, b = th.randn(size, size).to(dtype), th.randn(size, size).to(dtype)
+    a @ b  # warm-up
+    best = 0.0
+    for _ in range(repeats):
+        start = time.perf_counter()
+        a @ b
+        best = max(best, 2 * size**3 / (time.perf_counter() - start) / 1e9)
+    return best
+
+
+def layer_flops(shapes: list[tuple[int, int]]) -> int:
+    """FLOPs of one row through layers of the given (d_in, d_out) shapes."""
+    return sum(2 * d_in * d_out for d_in, d_out in shapes)
+
+
+def plan_flops(model: POPLIN) -> float:
+    """Analytic FLOPs of one single-env plan."""
+    dynamics = model.policy.dynamics
+    model_row = layer_flops([(layer.weight.shape[1], layer.weight.shape[2]) for layer in [*dynamics.hidden, dynamics.output]])
+    rows = model.population_size * (dynamics.ensemble_size if model.propagation == "expectation" else model.num_particles)
+    per_step = rows * model_row
+    actor = model.policy.actor
+    if actor is not None:
+        particles = 1 if model.propagation == "expectation" else model.num_particles
+        per_step += model.population_size * particles * layer_flops(actor.shapes)
+    flops = model.cem_iterations * model.horizon * per_step
+    if model.variant == "poplin-a" and model.proposal == "init":  # the open-loop proposal, once per plan
+        assert actor is not None
+        flops += model.horizon * (dynamics.ensemble_size * model_row + layer_flops(actor.shapes))
+    return float(flops)
+
+
+def time_plans(model: POPLIN, obs: np.ndarray, repeats: int) -> float:
+    for _ in range(2):
+        model.predict(obs)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        model.predict(obs)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def make(variant: dict, propagation: str, dtype: str, arch: tuple[int, ...]) -> POPLIN:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return POPLIN(
+            env=ENV_ID,
+            seed=0,
+            propagation=propagation,
+            num_particles=20,
+            planning_dtype=dtype,
+            dynamics_net_arch=arch,
+            **variant,
+            **PAPER,
+        )
+
+
+def bf16_effect(arch: tuple[int, ...], plans: int) -> str:
+    """How bf16 changes the executed action and the elite set, with a model fit on random data."""
+    model = make(dict(policy="pets"), "expectation", "float32", arch)
+    model.learn(1000)  # one random episode, then one fit
+    env = model.get_env()
+    assert env is not None
+    obs = env.reset()
+    action_diffs, overlaps = [], []
+    planner = model.planner
+    for i in range(plans):
+        obs_t = th.as_tensor(obs, dtype=th.float32)
+        z = th.randn(1, model.population_size, planner.search_space.dim, generator=th.Generator().manual_seed(i)) * 0.5
+        with th.inference_mode():
+            planner.dtype = th.float32
+            fp32 = planner.rollout(obs_t, z, None)
+            planner.dtype = th.bfloat16
+            bf16 = planner.rollout(obs_t, z, None)
+        k = model.num_elites
+        overlaps.append(len(set(fp32[0].topk(k).indices.tolist()) & set(bf16[0].topk(k).indices.tolist())) / k)
+        actions = []
+        for dtype in (th.float32, th.bfloat16):
+            planner.dtype = dtype
+            model.set_random_seed(100 + i)
+            actions.append(model.predict(obs, episode_start=np.ones(1, dtype=bool))[0])
+        action_diffs.append(float(np.abs(actions[0] - actions[1]).max()))
+        obs, *_ = env.step(actions[0])
+    return (
+        f"elite-set overlap (same candidates) mean {np.mean(overlaps):.2f}, min {np.min(overlaps):.2f}; "
+        f"executed action max abs diff median {np.median(action_diffs):.3f}, max {np.max(action_diffs):.3f} "
+        f"(actions in [-1, 1]) over {plans} plans"
+    )
+
+
+def policy_latency(repeats: int) -> tuple[float, float]:
+    """Median seconds of one policy-control predict: POPLIN-P's [32] policy and SAC's default actor."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        poplin = POPLIN("poplin-p", ENV_ID, seed=0, control="policy", **PAPER)
+    sac = SAC("MlpPolicy", ENV_ID, seed=0)
+    obs = poplin.observation_space.sample()
+    sac_obs = sac.observation_space.sample()
+    results = []
+    for model, o in ((poplin, obs), (sac, sac_obs)):
+        for _ in range(20):
+            model.predict(o, deterministic=True)
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            model.predict(o, deterministic=True)
+            times.append(time.perf_counter() - start)
+        results.append(statistics.median(times))
+    return results[0], results[1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--quick", action="store_true", help="a 2x64 ensemble instead of 4x200 (smoke test)")
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    arch = (64, 64) if args.quick else (200, 200, 200, 200)
+    command = "python " + " ".join(sys.argv)
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}, {args.threads} thread(s)"
+    peaks = {"float32": matmul_peak(th.float32), "bfloat16": matmul_peak(th.bfloat16)}
+    print(f"matmul peak: fp32 {peaks['float32']:.1f} GFLOP/s, bf16 {peaks['bfloat16']:.1f} GFLOP/s ({machine})")
+    section = "Planner speed at the paper setting (`benchmarks/planning_speed.py`)"
+    intro = (
+        "HalfCheetah-v5 sizes, population 500, horizon 30, 5 CEM iterations, 5 x (200, 200, 200, 200) ensemble; "
+        "median time of a single-env `predict` after warm-up; FLOPs counted analytically; the fp32/bf16 matmul peak is "
+        "a 2048^3 matmul measured in the same process at the same thread count."
+    )
+    header = [
+        "date",
+        "command",
+        "variant",
+        "propagation",
+        "dtype",
+        "time per plan",
+        "GFLOP/plan",
+        "GFLOP/s",
+        "fraction of peak",
+        "peak RSS",
+        "machine",
+    ]
+    times = {}
+    for name, variant, propagation, dtype in RUNS:
+        model = make(variant, propagation, dtype, arch)
+        obs = model.observation_space.sample()
+        seconds = time_plans(model, obs, args.repeats)
+        flops = plan_flops(model)
+        rate = flops / seconds / 1e9
+        peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        times[(name, propagation, dtype)] = seconds
+        fraction = rate / peaks[dtype]
+        print(
+            f"{name:14s} {propagation:11s} {dtype:8s} {seconds * 1000:8.1f} ms {flops / 1e9:7.1f} GFLOP "
+            f"{rate:6.1f} GFLOP/s {fraction:6.1%} of {dtype} peak, peak RSS {peak_rss:.0f} MiB",
+            flush=True,
+        )
+        append_row(
+            section,
+            intro,
+            header,
+            [
+                str(datetime.date.today()),
+                f"`{command}`",
+                name,
+                propagation,
+                dtype,
+                f"{seconds * 1000:.0f} ms",
+                f"{flops / 1e9:.1f}",
+                f"{rate:.1f}",
+                f"{fraction:.0%} of {peaks[dtype]:.0f}",
+                f"{peak_rss:.0f} MiB",
+                machine,
+            ],
+        )
+        del model
+    pets = times[("pets", "expectation", "float32")]
+    ratios = (
+        f"POPLIN-P/PETS {times[('poplin-p/sep', 'expectation', 'float32')] / pets:.2f}x, "
+        f"POPLIN-A/PETS {times[('poplin-a/init', 'expectation', 'float32')] / pets:.2f}x, "
+        f"bf16 speed-up PETS {pets / times[('pets', 'expectation', 'bfloat16')]:.2f}x, "
+        f"TS-inf {times[('pets', 'tsinf', 'float32')] / times[('pets', 'tsinf', 'bfloat16')]:.2f}x"
+    )
+    effect = bf16_effect(arch, plans=10)
+    poplin_latency, sac_latency = policy_latency(200)
+    latency = (
+        f"policy-control predict {poplin_latency * 1e6:.0f} us vs SAC actor {sac_latency * 1e6:.0f} us "
+        f"({poplin_latency / sac_latency:.2f}x)"
+    )
+    print(ratios)
+    print("bf16 effect:", effect)
+    print(latency)
+    append_row(
+        "Planner speed: ratios, bf16 effect and policy-control latency (`benchmarks/planning_speed.py`)",
+        "Same process as the rows above.",
+        ["date", "command", "ratios", "bf16 effect", "policy-control latency", "machine"],
+        [str(datetime.date.today()), f"`{command}`", ratios, effect, latency, machine],
+    )
+
+
+if __name__ == "__main__":
+    main()
