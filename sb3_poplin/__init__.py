@@ -2,6 +2,7 @@
 
 import os
 
+from sb3_poplin import envs  # noqa: F401  (registers the sb3_poplin/... gymnasium ids)
 from sb3_poplin.poplin import POPLIN
 from sb3_poplin.tasks import TaskSpec, make_task, register_task
 

@@ -52,7 +52,7 @@ from sb3_poplin.planning import (
     SearchSpace,
 )
 from sb3_poplin.policies import POPLINPolicy
-from sb3_poplin.tasks import RewardFn, TerminationFn, has_task, make_task
+from sb3_poplin.tasks import RewardFn, TerminationFn, check_observation_space, has_task, make_task
 
 SelfPOPLIN = TypeVar("SelfPOPLIN", bound="POPLIN")
 
@@ -104,11 +104,7 @@ def _check_spaces(env: GymEnv | None) -> None:
             f"POPLIN needs finite action bounds, got low={action_space.low}, high={action_space.high}. "
             "Wrap the env with gymnasium.wrappers.ClipAction or RescaleAction to bound it."
         )
-    if not isinstance(observation_space, spaces.Box) or len(observation_space.shape) != 1:
-        raise ValueError(
-            f"POPLIN needs a flat Box observation space, got {observation_space}. "
-            "Flatten it first (gymnasium.wrappers.FlattenObservation)."
-        )
+    check_observation_space(observation_space, _env_id(env))
 
 
 def _check_saved_agent(path: str | pathlib.Path | io.BufferedIOBase) -> None:
@@ -489,14 +485,14 @@ class POPLIN(OffPolicyAlgorithm):
         self._plan_count = 0
         self._fallbacks = 0  # plans with no finite candidate since the last log
         self._fallback_warned = False
-        saved = self.__dict__.pop("_saved_planner_state", None)  # restored by load()
-        if saved is not None:
-            self._restore_planner_state(saved)
         self._collecting = False  # True while SB3's rollout collection asks for an action
         # planned real steps since the last distillation (one dict of tensors per planned step)
         self._planned: list[dict[str, th.Tensor]] = []
         # the BC/GAN dataset: the most recent `distill_window` planned steps (states, actions, imagined actions)
         self._distill_data: dict[str, th.Tensor] = {}
+        saved = self.__dict__.pop("_saved_planner_state", None)  # restored by load()
+        if saved is not None:
+            self._restore_planner_state(saved)
 
     def set_random_seed(self, seed: int | None = None) -> None:
         """Seed python, numpy, torch, the action space and the planner's generator."""
@@ -569,6 +565,7 @@ class POPLIN(OffPolicyAlgorithm):
             actions = actions.squeeze(0)
         return actions, result.next_mean
 
+    @th.no_grad()
     def _record_planned_step(self, obs: th.Tensor, result: PlanResult, keep: th.Tensor) -> None:
         """
         Keep what distillation needs of a planned real step (a failed plan says nothing): the state and

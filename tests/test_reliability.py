@@ -44,8 +44,8 @@ BOX1 = spaces.Box(-1.0, 1.0, (1,))
     "observation_space, action_space, message",
     [
         (spaces.Box(-1.0, 1.0, (3,)), spaces.Box(-np.inf, np.inf, (1,)), "finite action bounds.*RescaleAction"),
-        (spaces.Dict({"a": spaces.Box(-1.0, 1.0, (2,))}), BOX1, "flat Box observation space.*FlattenObservation"),
-        (spaces.Box(0, 255, (8, 8, 3), dtype=np.uint8), BOX1, "flat Box observation space"),
+        (spaces.Dict({"a": spaces.Box(-1.0, 1.0, (2,))}), BOX1, "flat 1-D Box observation space.*FlattenObservation"),
+        (spaces.Box(0, 255, (8, 8, 3), dtype=np.uint8), BOX1, r"has shape \(8, 8, 3\).*flat 1-D Box"),
         (spaces.Box(-1.0, 1.0, (3,)), spaces.MultiDiscrete([3, 3]), "Box action space"),
     ],
 )

@@ -292,3 +292,13 @@ def test_control_modes_callback_logs_both(tmp_path):
     callback = ControlModesEvalCallback(eval_freq=200, n_eval_episodes=1, log_path=str(tmp_path / "pets"))
     pets.learn(200, callback=callback)
     assert (tmp_path / "pets" / "evaluations_mpc.npz").exists() and not (tmp_path / "pets" / "evaluations_policy.npz").exists()
+
+
+def test_recorded_distillation_targets_carry_no_graph():
+    model = POPLIN("poplin-a", "Pendulum-v1", seed=0, **TINY)  # BC-AI: imagined targets computed while acting
+    model.learn(400)
+    model._collecting = True
+    model.predict(np.array([1.0, 0.0, 0.0], dtype=np.float32))
+    model._collecting = False
+    for key, value in model._planned[-1].items():
+        assert not value.requires_grad and value.grad_fn is None, key

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import gymnasium as gym
 import torch as th
 
 RewardFn = Callable[[th.Tensor, th.Tensor, th.Tensor], th.Tensor]
@@ -72,13 +73,36 @@ def has_task(env_id: str) -> bool:
     return env_id in _REGISTRY
 
 
-def make_task(env_id: str) -> TaskSpec:
+def check_observation_space(space: gym.Space, env_id: str | None = None) -> None:
+    """
+    Check that observations are flat vectors, the only kind the dynamics model and the task functions handle.
+
+    :param space: the env's observation space
+    :param env_id: the env's id, named in the error message when given
+    :raises ValueError: when ``space`` is not a :class:`gymnasium.spaces.Box` with a 1-D shape
+    """
+    if isinstance(space, gym.spaces.Box) and len(space.shape) == 1:
+        return
+    name = f"{env_id!r}" if env_id is not None else "This env"
+    problem = f"has shape {space.shape}" if isinstance(space, gym.spaces.Box) else f"is a {type(space).__name__}"
+    raise ValueError(
+        f"{name} has the observation space {space}, which {problem}: the dynamics model and the task's reward and "
+        "termination functions need a flat 1-D Box observation space. Wrap the env with "
+        "gymnasium.wrappers.FlattenObservation (or a wrapper of your own that returns a 1-D float vector) and write "
+        "the reward_fn / termination_fn for the flattened layout."
+    )
+
+
+def make_task(env_id: str, observation_space: gym.Space | None = None) -> TaskSpec:
     """
     Look up the :class:`TaskSpec` of a gymnasium id.
 
     :param env_id: the gymnasium id, e.g. ``"Pendulum-v1"``
+    :param observation_space: when given, also checked with :func:`check_observation_space`
     :return: the registered spec
     """
+    if observation_space is not None:
+        check_observation_space(observation_space, env_id)
     try:
         return _REGISTRY[env_id]
     except KeyError:
@@ -90,6 +114,15 @@ def make_task(env_id: str) -> TaskSpec:
 
 
 # Built-in tasks register themselves on import.
-from sb3_poplin.tasks import classic, mujoco  # noqa: E402, F401
+from sb3_poplin.tasks import classic, mujoco, paper  # noqa: E402, F401
 
-__all__ = ["RewardFn", "TaskSpec", "TerminationFn", "has_task", "make_task", "register_task", "registered_tasks"]
+__all__ = [
+    "RewardFn",
+    "TaskSpec",
+    "TerminationFn",
+    "check_observation_space",
+    "has_task",
+    "make_task",
+    "register_task",
+    "registered_tasks",
+]
