@@ -1,0 +1,635 @@
+"""
+Compare POPLIN with model-free baselines through rl-zoo3: algorithms x tasks x seeds.
+
+Every run is ``python -m sb3_poplin.zoo train`` in its own process (torch on one thread), with the same
+``n_timesteps``, ``--eval-freq`` and ``--eval-episodes`` for every algorithm of a task. Runs go to a local
+pool of ``--jobs`` processes (default 2), or to Ray tasks with ``--ray-address`` (``local`` starts a Ray
+instance on this machine with ``--jobs`` CPUs; ``auto`` or an address joins a running cluster; Ray is the
+optional ``ray`` extra). A run whose model and evaluations already exist with the same settings is reused,
+so an interrupted comparison resumes (``--force`` reruns).
+
+The report (``--output``) has ``results.md``, a Markdown table of the final evaluation return (mean ± std
+over seeds) at the step every algorithm of the task reached, ``results.json`` with the numbers, and
+``curves_<task>.png``, one learning-curve figure per task (``/`` in an id becomes ``-``). POPLIN-A/P runs
+are reported twice: MPC (``evaluations.npz``) and policy control (``evaluations_policy.npz``).
+
+``--budget cpu`` (default) takes POPLIN's settings and each task's ``n_timesteps`` from
+``sb3_poplin/hyperparams/poplin_cpu.yml``; ``--budget paper`` from ``poplin.yml``. The baselines use their
+packaged files (``sac.yml`` ...) with the same ``n_timesteps``. Smoke test::
+
+    python benchmarks/compare.py --algos poplin sac --envs Pendulum-v1 --seeds 0 1 -n 400 --n-evals 2 \\
+        --eval-episodes 2 --params poplin:horizon:5 poplin:population_size:20 poplin:num_elites:4
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+ALGOS = ("poplin", "sac", "td3", "ppo", "crossq", "tqc")
+BUDGETS = ("cpu", "paper")
+POLICY_VARIANTS = ("poplin-a", "poplin-p")
+# files of a run directory sent back by a Ray task (for clusters without a shared file system)
+RUN_FILE_SUFFIXES = (".npz", ".yml", ".txt", ".csv", ".zip")
+
+
+def hyperparams_dir() -> Path:
+    """The packaged ``sb3_poplin/hyperparams`` folder, found without importing the package (and torch)."""
+    spec = importlib.util.find_spec("sb3_poplin")
+    if spec is None or not spec.submodule_search_locations:
+        raise SystemExit("sb3_poplin is not installed: run `pip install -e .` in the repository first.")
+    return Path(next(iter(spec.submodule_search_locations))) / "hyperparams"
+
+
+def env_name(env: str) -> str:
+    """
+    :param env: gymnasium id
+    :return: the name rl-zoo3 gives it in its folders (``/`` becomes ``-``, as ``huggingface_sb3`` does)
+    """
+    return env.replace("/", "-")
+
+
+def read_yaml(path: Path) -> dict[str, Any]:
+    """
+    :param path: a YAML file
+    :return: its mapping (empty when it holds none)
+    """
+    with open(path) as file:
+        content = yaml.safe_load(file)
+    return content if isinstance(content, dict) else {}
+
+
+def parse_value(text: str) -> Any:
+    """
+    :param text: a ``-params`` value
+    :return: the value as rl-zoo3 reads it (a Python expression)
+    """
+    return eval(text)  # the zoo evaluates the same string
+
+
+@dataclass
+class Job:
+    """
+    One training run.
+
+    :param algo: rl-zoo3 algorithm name
+    :param env: gymnasium id
+    :param seed: random seed
+    :param n_timesteps: training steps
+    :param eval_freq: evaluation period in steps
+    :param eval_episodes: episodes per evaluation
+    :param conf_file: hyperparameter file, or ``None`` for the zoo's own
+    :param params: ``-params`` overrides, as ``KEY:VALUE`` strings
+    :param log_folder: rl-zoo3 log folder (absolute)
+    :param python: interpreter that runs the zoo
+    """
+
+    algo: str
+    env: str
+    seed: int
+    n_timesteps: int
+    eval_freq: int
+    eval_episodes: int
+    conf_file: str | None
+    params: list[str]
+    log_folder: str
+    python: str
+
+    @property
+    def name(self) -> str:
+        """A file-name-safe name of the job."""
+        return f"{self.algo}_{env_name(self.env)}_seed{self.seed}"
+
+    def command(self) -> list[str]:
+        """:return: the command line of the run"""
+        command = [self.python, "-m", "sb3_poplin.zoo", "train", "--algo", self.algo, "--env", self.env]
+        command += ["--seed", str(self.seed), "-f", self.log_folder, "-uuid", "--num-threads", "1"]
+        command += ["-n", str(self.n_timesteps), "--eval-freq", str(self.eval_freq)]
+        command += ["--eval-episodes", str(self.eval_episodes)]
+        if self.conf_file is not None:
+            command += ["--conf-file", self.conf_file]
+        if self.params:
+            command += ["-params", *self.params]
+        return command
+
+    def matches(self, args: dict[str, Any]) -> bool:
+        """
+        :param args: a run's ``args.yml``
+        :return: whether this job's command wrote it
+        """
+        expected = {key.split(":", 1)[0]: parse_value(key.split(":", 1)[1]) for key in self.params}
+        return (
+            args.get("algo") == self.algo
+            and args.get("env") == self.env
+            and args.get("seed") == self.seed
+            and args.get("n_timesteps") == self.n_timesteps
+            and args.get("eval_freq") == self.eval_freq
+            and args.get("eval_episodes") == self.eval_episodes
+            and args.get("conf_file") == self.conf_file
+            and (args.get("hyperparams") or {}) == expected
+        )
+
+
+@dataclass
+class JobResult:
+    """
+    :param job: the job
+    :param returncode: exit code of the run (0 for a reused run)
+    :param run_dir: the run's folder relative to the log folder, or ``None`` when not found
+    :param reused: an existing run was reused
+    :param output_tail: the end of the run's output (for failures)
+    :param files: run files sent back by a Ray task (relative path -> content)
+    """
+
+    job: Job
+    returncode: int
+    run_dir: str | None = None
+    reused: bool = False
+    output_tail: str = ""
+    files: dict[str, bytes] = field(default_factory=dict)
+
+
+def find_run(job: Job) -> str | None:
+    """
+    :param job: the job
+    :return: the newest complete run of ``job`` in its log folder (relative path), or ``None``
+    """
+    root = Path(job.log_folder) / job.algo
+    if not root.is_dir():
+        return None
+    name = env_name(job.env)
+    found: list[tuple[float, Path]] = []
+    for run in root.iterdir():
+        args_file = run / name / "args.yml"
+        if not (run.name.startswith(f"{name}_") and args_file.is_file()):
+            continue
+        if not ((run / f"{name}.zip").is_file() and (run / "evaluations.npz").is_file()):
+            continue
+        with open(args_file) as file:
+            args = yaml.load(file, Loader=yaml.UnsafeLoader)  # written by the zoo (an OrderedDict)
+        if isinstance(args, dict) and job.matches(dict(args)):
+            found.append((run.stat().st_mtime, run))
+    if not found:
+        return None
+    return str(max(found)[1].relative_to(job.log_folder))
+
+
+def execute(job: Job, force: bool = False, collect_files: bool = False) -> JobResult:
+    """
+    Run one job (or reuse its complete run).
+
+    :param job: the job
+    :param force: train again even if a complete run exists
+    :param collect_files: return the run's files (Ray tasks on machines without a shared file system)
+    :return: the outcome
+    """
+    run_dir = None if force else find_run(job)
+    result = JobResult(job, 0, run_dir, reused=run_dir is not None)
+    if run_dir is None:
+        os.makedirs(os.path.join(job.log_folder, "compare_logs"), exist_ok=True)
+        log_file = os.path.join(job.log_folder, "compare_logs", f"{job.name}.log")
+        env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+        with open(log_file, "w") as output:
+            process = subprocess.run(job.command(), stdout=output, stderr=subprocess.STDOUT, env=env, check=False)
+        result.returncode = process.returncode
+        result.run_dir = find_run(job) if process.returncode == 0 else None
+        if result.run_dir is None:
+            with open(log_file) as output:
+                result.output_tail = "".join(output.readlines()[-30:])
+            result.returncode = result.returncode or 1
+    if collect_files and result.run_dir is not None:
+        run_path = Path(job.log_folder) / result.run_dir
+        for path in run_path.rglob("*"):
+            if path.is_file() and path.suffix in RUN_FILE_SUFFIXES:
+                result.files[str(path.relative_to(job.log_folder))] = path.read_bytes()
+    return result
+
+
+def run_local(jobs: list[Job], n_parallel: int, force: bool) -> list[JobResult]:
+    """
+    Run the jobs in a pool of ``n_parallel`` processes.
+
+    :param jobs: the jobs
+    :param n_parallel: runs at a time
+    :param force: train again even if a complete run exists
+    :return: the results, in the jobs' order
+    """
+    with concurrent.futures.ThreadPoolExecutor(max_workers=n_parallel) as pool:
+        futures = [pool.submit(execute, job, force) for job in jobs]
+        for future in concurrent.futures.as_completed(futures):
+            report_progress(future.result())
+    return [future.result() for future in futures]
+
+
+def run_ray(jobs: list[Job], address: str, n_parallel: int, force: bool) -> list[JobResult]:
+    """
+    Run the jobs as Ray tasks of one CPU each; the files of runs made on other machines are written to the
+    local log folder.
+
+    :param jobs: the jobs
+    :param address: ``"local"`` (start a Ray instance here), ``"auto"`` or a cluster address
+    :param n_parallel: CPUs of a local Ray instance
+    :param force: train again even if a complete run exists
+    :return: the results, in the jobs' order
+    """
+    try:
+        import ray
+    except ImportError:
+        raise SystemExit("--ray-address needs Ray: pip install 'sb3_poplin[ray]'") from None
+    if __name__ != "__main__":  # imported: let the workers receive this module's functions by value
+        ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    if address == "local":
+        ray.init(num_cpus=n_parallel, include_dashboard=False, log_to_driver=False)
+    else:
+        ray.init(address=address, log_to_driver=False)
+    try:
+        task = ray.remote(num_cpus=1)(execute)
+        submitted = {task.remote(job, force, True): index for index, job in enumerate(jobs)}
+        results: dict[int, JobResult] = {}
+        pending = list(submitted)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            result = ray.get(done[0])
+            for relative, content in result.files.items():
+                path = Path(result.job.log_folder) / relative
+                if not path.exists():
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    path.write_bytes(content)
+            result.files = {}
+            report_progress(result)
+            results[submitted[done[0]]] = result
+    finally:
+        ray.shutdown()
+    return [results[index] for index in range(len(jobs))]
+
+
+def report_progress(result: JobResult) -> None:
+    """
+    :param result: a finished job, printed as one line (with the end of its output when it failed)
+    """
+    if result.returncode == 0:
+        state = "reused" if result.reused else "done"
+        print(f"[{state}] {result.job.name}: {result.run_dir}", flush=True)
+    else:
+        print(f"[failed {result.returncode}] {result.job.name}\n{result.output_tail}", flush=True)
+
+
+# ------------------------------------------------------------------------------------------------- report
+@dataclass
+class Curve:
+    """
+    Evaluation results of one run under one label.
+
+    :param label: row label, e.g. ``"SAC"`` or ``"POPLIN-P (policy)"``
+    :param seed: the run's seed
+    :param timesteps: evaluation steps
+    :param returns: mean evaluation return at each of them
+    """
+
+    label: str
+    seed: int
+    timesteps: np.ndarray
+    returns: np.ndarray
+
+
+def load_curves(result: JobResult) -> list[Curve]:
+    """
+    :param result: a finished job with a run
+    :return: its evaluation curves: one, or two (MPC and policy) for POPLIN-A/P
+    """
+    job = result.job
+    assert result.run_dir is not None
+    run = Path(job.log_folder) / result.run_dir
+    files = {job.algo.upper(): run / "evaluations.npz"}
+    if job.algo == "poplin":
+        with open(run / env_name(job.env) / "config.yml") as file:
+            config = yaml.load(file, Loader=yaml.UnsafeLoader)  # written by the zoo (an OrderedDict)
+        variant = str(dict(config).get("policy", "poplin")).upper()
+        files = {f"{variant} (MPC)": run / "evaluations.npz"}
+        if variant.lower() in POLICY_VARIANTS:
+            files[f"{variant} (policy)"] = run / "evaluations_policy.npz"
+    curves = []
+    for label, path in files.items():
+        if not path.is_file():
+            continue
+        with np.load(path) as data:
+            timesteps, results = np.asarray(data["timesteps"]), np.asarray(data["results"], dtype=float)
+        if len(timesteps):
+            curves.append(Curve(label, job.seed, timesteps, results.reshape(len(timesteps), -1).mean(axis=1)))
+    return curves
+
+
+def value_at(curve: Curve, step: int) -> float:
+    """
+    :param curve: evaluation curve
+    :param step: environment step
+    :return: the curve's return at its last evaluation at or before ``step``
+    """
+    index = int(np.searchsorted(curve.timesteps, step, side="right")) - 1
+    return float(curve.returns[max(index, 0)])
+
+
+def summarize(env: str, curves: list[Curve], failed: dict[str, int], expected: dict[str, int]) -> dict[str, Any]:
+    """
+    Final returns of one task at the matched step (the last evaluation step every run reached).
+
+    :param env: gymnasium id
+    :param curves: the task's curves
+    :param failed: algorithm -> failed runs
+    :param expected: algorithm -> planned runs
+    :return: the summary written to ``results.json``
+    """
+    matched = int(min(curve.timesteps[-1] for curve in curves)) if curves else 0
+    labels: dict[str, dict[str, Any]] = {}
+    for curve in curves:
+        entry = labels.setdefault(curve.label, {"seeds": [], "final": []})
+        entry["seeds"].append(curve.seed)
+        entry["final"].append(value_at(curve, matched))
+    for entry in labels.values():
+        entry["mean"] = float(np.mean(entry["final"]))
+        entry["std"] = float(np.std(entry["final"]))
+    return {"env": env, "matched_step": matched, "labels": labels, "failed": failed, "expected": expected}
+
+
+def format_cell(summary: dict[str, Any], label: str, algo: str) -> str:
+    """
+    :param summary: a task's summary
+    :param label: column label
+    :param algo: the label's algorithm
+    :return: the table cell: mean ± std over seeds, the number of seeds and failures
+    """
+    entry = summary["labels"].get(label)
+    failed = summary["failed"].get(algo, 0)
+    note = f", {failed} failed" if failed else ""
+    if entry is None:
+        return f"failed ({failed}/{summary['expected'].get(algo, 0)})" if failed else "—"
+    n_seeds = len(entry["final"])
+    if n_seeds == 1:
+        return f"{entry['mean']:.1f} (1 seed{note})"
+    return f"{entry['mean']:.1f} ± {entry['std']:.1f} ({n_seeds} seeds{note})"
+
+
+def label_algo(label: str) -> str:
+    """
+    :param label: column label, e.g. ``"POPLIN-P (MPC)"`` or ``"SAC"``
+    :return: its rl-zoo3 algorithm name
+    """
+    return "poplin" if label.startswith("POPLIN") or label in ("PETS (MPC)", "RS (MPC)") else label.lower()
+
+
+def write_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> None:
+    """
+    :param summaries: one per task
+    :param budget: ``"cpu"`` or ``"paper"``
+    :param path: the Markdown file to write
+    """
+    labels: list[str] = []
+    for summary in summaries:
+        labels += [label for label in summary["labels"] if label not in labels]
+    for summary in summaries:  # an algorithm whose every run failed still gets a column
+        for algo in summary["failed"]:
+            if not any(label_algo(label) == algo for label in labels):
+                labels.append(algo.upper())
+    lines = [
+        f"# POPLIN vs model-free baselines ({budget} budget)",
+        "",
+        "Final evaluation return, mean ± std over seeds (each seed: mean over its evaluation episodes), at the",
+        "matched step: the last evaluation step every run of the task reached. MPC: planning with the learned",
+        "model; policy: the distilled policy network alone.",
+        "",
+        "| task | matched step | " + " | ".join(labels) + " |",
+        "|---|---|" + "---|" * len(labels),
+    ]
+    for summary in summaries:
+        cells = [format_cell(summary, label, label_algo(label)) for label in labels]
+        lines.append(f"| {summary['env']} | {summary['matched_step']} | " + " | ".join(cells) + " |")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def plot_curves(env: str, curves: list[Curve], budget: str, path: Path) -> None:
+    """
+    Plot one task's learning curves: mean over seeds with a ± std band, one line per label.
+
+    :param env: gymnasium id
+    :param curves: the task's curves
+    :param budget: ``"cpu"`` or ``"paper"``
+    :param path: the PNG file to write
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(6.4, 4.4))
+    for label in dict.fromkeys(curve.label for curve in curves):
+        runs = [curve for curve in curves if curve.label == label]
+        length = min(len(curve.timesteps) for curve in runs)
+        steps = runs[0].timesteps[:length]
+        values = np.stack([curve.returns[:length] for curve in runs])
+        mean, std = values.mean(axis=0), values.std(axis=0)
+        axis.plot(steps, mean, label=f"{label} ({len(runs)} seeds)", linewidth=2)
+        axis.fill_between(steps, mean - std, mean + std, alpha=0.2)
+    axis.set_title(f"{env} ({budget} budget)")
+    axis.set_xlabel("environment steps")
+    axis.set_ylabel("evaluation return (mean ± std over seeds)")
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
+def write_report(results: list[JobResult], envs: list[str], budget: str, output: Path) -> Path:
+    """
+    Write ``results.md``, ``results.json`` and one ``curves_<task>.png`` per task.
+
+    :param results: every job's result
+    :param envs: the tasks, in table order
+    :param budget: ``"cpu"`` or ``"paper"``
+    :param output: the report folder
+    :return: the table's path
+    """
+    output.mkdir(parents=True, exist_ok=True)
+    summaries = []
+    for env in envs:
+        env_results = [result for result in results if result.job.env == env]
+        curves = [curve for result in env_results if result.run_dir is not None for curve in load_curves(result)]
+        failed: dict[str, int] = {}
+        expected: dict[str, int] = {}
+        for result in env_results:
+            expected[result.job.algo] = expected.get(result.job.algo, 0) + 1
+            if result.run_dir is None:
+                failed[result.job.algo] = failed.get(result.job.algo, 0) + 1
+        summaries.append(summarize(env, curves, failed, expected))
+        if curves:
+            plot_curves(env, curves, budget, output / f"curves_{env_name(env)}.png")
+    table = output / "results.md"
+    write_table(summaries, budget, table)
+    runs = [{**asdict(result.job), "run_dir": result.run_dir, "returncode": result.returncode} for result in results]
+    (output / "results.json").write_text(json.dumps({"budget": budget, "tasks": summaries, "runs": runs}, indent=2))
+    return table
+
+
+# ------------------------------------------------------------------------------------------------- planning
+def algo_settings(
+    algo: str, env: str, n_timesteps: int, poplin_conf: Path, params: list[str], options: argparse.Namespace
+) -> tuple[str | None, list[str]]:
+    """
+    The hyperparameter file and ``-params`` of one algorithm on one task.
+
+    :param algo: rl-zoo3 algorithm name
+    :param env: gymnasium id
+    :param n_timesteps: the run's budget
+    :param poplin_conf: POPLIN's hyperparameter file for the budget
+    :param params: ``--params`` settings for this algorithm (``KEY:VALUE``)
+    :param options: the command line
+
+    A baseline whose random warm-up (``learning_starts``) would take half the budget or more, as the zoo's MuJoCo
+    settings (5000-10000 steps) do with CPU budgets, starts learning after a tenth of the budget instead, unless
+    ``--params`` sets it or ``--keep-learning-starts`` is given.
+
+    :return: the ``--conf-file`` (``None``: the zoo's own) and the ``-params`` overrides
+    """
+    conf: Path | None = poplin_conf if algo == "poplin" else hyperparams_dir() / f"{algo}.yml"
+    entry = read_yaml(conf).get(env) if conf is not None and conf.is_file() else None
+    if entry is None and algo == "poplin":
+        raise SystemExit(f"{env} has no entry in {poplin_conf}.")
+    if entry is None:
+        return None, params  # the zoo's own file
+    learning_starts = int(entry.get("learning_starts", 0))
+    overridden = any(setting.startswith("learning_starts:") for setting in params)
+    if algo != "poplin" and learning_starts >= n_timesteps / 2 and not overridden:
+        if options.keep_learning_starts:
+            print(f"warning: {algo} on {env} learns only after {learning_starts} of its {n_timesteps} steps")
+        else:
+            params = [*params, f"learning_starts:{n_timesteps // 10}"]
+            print(f"note: {algo} on {env}: learning_starts {learning_starts} -> {n_timesteps // 10} ({n_timesteps} steps)")
+    return str(conf), params
+
+
+def plan_jobs(options: argparse.Namespace) -> list[Job]:
+    """
+    :param options: the command line
+    :return: one job per algorithm x task x seed, with matched budgets and evaluation settings
+    """
+    folder = hyperparams_dir()
+    poplin_conf = folder / ("poplin_cpu.yml" if options.budget == "cpu" else "poplin.yml")
+    poplin_config = read_yaml(poplin_conf)
+    params: dict[str, list[str]] = {}
+    for item in options.params:
+        algo, _, setting = item.partition(":")
+        if algo not in options.algos or ":" not in setting:
+            raise SystemExit(f"--params takes ALGO:KEY:VALUE with ALGO among {options.algos}, got {item!r}")
+        params.setdefault(algo, []).append(setting)
+    jobs = []
+    log_folder = os.path.abspath(options.log_folder or f"logs/compare-{options.budget}")
+    options.envs = options.envs or list(poplin_config)
+    for env in options.envs:
+        if options.n_timesteps is not None:
+            n_timesteps = options.n_timesteps
+        elif env in poplin_config:
+            n_timesteps = int(poplin_config[env]["n_timesteps"])
+        else:
+            raise SystemExit(f"{env} has no entry in {poplin_conf}: pass -n to set its budget.")
+        eval_freq = options.eval_freq or max(n_timesteps // options.n_evals, 1)
+        for algo in options.algos:
+            conf, algo_params = algo_settings(algo, env, n_timesteps, poplin_conf, params.get(algo, []), options)
+            for seed in options.seeds:
+                jobs.append(
+                    Job(
+                        algo=algo,
+                        env=env,
+                        seed=seed,
+                        n_timesteps=n_timesteps,
+                        eval_freq=eval_freq,
+                        eval_episodes=options.eval_episodes or (3 if options.budget == "cpu" else 5),
+                        conf_file=conf,
+                        params=algo_params,
+                        log_folder=log_folder,
+                        python=options.python,
+                    )
+                )
+    return jobs
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """
+    :param argv: the arguments (``None``: ``sys.argv[1:]``)
+    :return: the options
+    """
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--algos", nargs="+", default=list(ALGOS), choices=ALGOS, help="algorithms (rl-zoo3 names)")
+    parser.add_argument("--envs", nargs="+", help="gymnasium ids (default: every task of the budget's POPLIN file)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument(
+        "--budget", choices=BUDGETS, default="cpu", help="cpu: poplin_cpu.yml and its n_timesteps; paper: poplin.yml"
+    )
+    parser.add_argument("-n", "--n-timesteps", type=int, help="training steps of every run (default: the budget's)")
+    parser.add_argument("--n-evals", type=int, default=10, help="evaluations per run (sets --eval-freq); default 10")
+    parser.add_argument("--eval-freq", type=int, help="evaluation period in steps (default: n_timesteps / n_evals)")
+    parser.add_argument(
+        "--eval-episodes", type=int, help="episodes per evaluation, >= 2 (default: 3 with --budget cpu, 5 with paper)"
+    )
+    parser.add_argument("--jobs", type=int, default=2, help="parallel runs (local pool, or CPUs of a local Ray instance)")
+    parser.add_argument("--ray-address", help="run as Ray tasks: 'local' (new local instance), 'auto' or a cluster address")
+    parser.add_argument("--params", nargs="+", default=[], help="-params overrides per algorithm: ALGO:KEY:VALUE")
+    parser.add_argument("--log-folder", help="rl-zoo3 log folder (default: logs/compare-<budget>)")
+    parser.add_argument("--output", help="report folder (default: <log folder>/report)")
+    parser.add_argument("--python", default=sys.executable, help="interpreter of the runs (default: this one)")
+    parser.add_argument(
+        "--keep-learning-starts",
+        action="store_true",
+        help="keep the baselines' learning_starts even when it is half the budget or more (default: a tenth of it)",
+    )
+    parser.add_argument("--force", action="store_true", help="train again even when a complete run exists")
+    parser.add_argument("--report-only", action="store_true", help="do not train: report the complete runs that exist")
+    options = parser.parse_args(argv)
+    if options.eval_episodes is not None and options.eval_episodes < 2:
+        parser.error("--eval-episodes must be >= 2 (rl-zoo3's all_plots needs it)")
+    if options.jobs < 1 or options.n_evals < 1:
+        parser.error("--jobs and --n-evals must be >= 1")
+    return options
+
+
+def main(argv: list[str] | None = None) -> int:
+    """
+    Plan, run and report a comparison.
+
+    :param argv: the arguments (``None``: ``sys.argv[1:]``)
+    :return: the exit code: 1 when a run failed or is missing
+    """
+    options = parse_args(argv)
+    jobs = plan_jobs(options)
+    print(f"{len(jobs)} runs ({len(options.algos)} algorithms x {len(options.envs)} tasks x {len(options.seeds)} seeds)")
+    if options.report_only:
+        results = []
+        for job in jobs:
+            run_dir = find_run(job)
+            results.append(JobResult(job, 0 if run_dir else 1, run_dir, reused=run_dir is not None))
+    elif options.ray_address:
+        results = run_ray(jobs, options.ray_address, options.jobs, options.force)
+    else:
+        results = run_local(jobs, options.jobs, options.force)
+    output = Path(options.output or os.path.join(jobs[0].log_folder if jobs else ".", "report"))
+    table = write_report(results, list(options.envs), options.budget, output)
+    print(table.read_text())
+    print(f"Report: {output}")
+    n_failed = sum(result.run_dir is None for result in results)
+    if n_failed:
+        print(f"{n_failed} of {len(results)} runs failed or are missing (see {jobs[0].log_folder}/compare_logs)")
+    return 1 if n_failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

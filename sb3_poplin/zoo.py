@@ -1,0 +1,533 @@
+"""
+rl-zoo3 front end: train, play, record and plot POPLIN (and the model-free baselines) with rl-zoo3.
+
+rl-zoo3 has no plugin mechanism: its ``--algo`` choices come from the ``rl_zoo3.ALGOS`` table when its
+argument parser is built. This module adds ``poplin`` to that table (and an optuna sampler for
+``-optimize``), then hands the command line to rl-zoo3's own ``train`` / ``enjoy`` / ``record_video``
+/ plot scripts::
+
+    python -m sb3_poplin.zoo train --algo poplin --env Pendulum-v1 --num-threads 1
+    python -m sb3_poplin.zoo enjoy --algo poplin --env Pendulum-v1 -f logs --no-render
+    python -m sb3_poplin.zoo plots all_plots -a poplin sac -e Pendulum-v1 -f logs --output-dir plots
+
+(``sb3-poplin-zoo`` is the same as ``python -m sb3_poplin.zoo``.) What it adds to rl-zoo3:
+
+* ``--conf-file`` defaults to the packaged ``sb3_poplin/hyperparams/<algo>.yml`` for ``poplin``, ``sac``,
+  ``td3``, ``ppo``, ``crossq`` and ``tqc`` when it has an entry for the env (these files have the
+  MuJoCo ``-v5`` keys that rl-zoo3 lacks); otherwise rl-zoo3's own file is used.
+* POPLIN envs get the env kwargs their task's reward needs (``sb3_poplin.tasks``) when the config
+  does not set them; the evaluation env gets the config's env kwargs too (rl-zoo3 2.9 gives them only
+  with ``--env-kwargs``), and they are recorded in ``args.yml`` so ``enjoy`` and ``record_video``
+  rebuild the same env.
+* POPLIN-A/P runs also evaluate policy control (the distilled network alone) at the same steps as the
+  zoo's MPC evaluation and write ``evaluations_policy.npz`` next to ``evaluations.npz``
+  (``--no-policy-eval`` turns it off).
+* ``enjoy`` and ``record_video`` load POPLIN with a one-transition replay buffer.
+* ``plots`` saves every figure of the zoo's plot scripts as a PNG (``--output-dir``, default ``.``);
+  ``--show`` also displays them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import io
+import os
+import pathlib
+import re
+import runpy
+import sys
+import warnings
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
+
+import optuna
+import rl_zoo3.train
+import yaml
+from rl_zoo3 import ALGOS
+from rl_zoo3.exp_manager import ExperimentManager
+from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
+from stable_baselines3.common.type_aliases import GymEnv
+
+from sb3_poplin.callbacks import ControlModesEvalCallback
+from sb3_poplin.poplin import POPLIN
+from sb3_poplin.tasks import has_task, make_task
+
+ALGO = "poplin"
+HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
+# algorithms with a packaged hyperparameter file (poplin also has the CPU-sized poplin_cpu.yml)
+PACKAGED_ALGOS = ("poplin", "sac", "td3", "ppo", "crossq", "tqc")
+BUDGETS = ("paper", "cpu")
+# variants with a policy network, i.e. with a policy-control mode to evaluate
+POLICY_VARIANTS = ("poplin-a", "poplin-p")
+PLOT_COMMANDS = ("all_plots", "plot_train", "plot_from_file")
+COMMANDS = ("train", "enjoy", "record_video", "plots", *PLOT_COMMANDS)
+
+SelfPlayedPOPLIN = TypeVar("SelfPlayedPOPLIN", bound="PlayedPOPLIN")
+
+
+# ---------------------------------------------------------------------------------------- hyperparameter files
+def config_path(algo: str, budget: str = "paper") -> Path | None:
+    """
+    The packaged hyperparameter file of an algorithm.
+
+    :param algo: rl-zoo3 algorithm name, e.g. ``"poplin"`` or ``"sac"``
+    :param budget: ``"paper"`` (the paper's planner settings) or ``"cpu"`` (planner budgets for 2 CPU cores);
+        only POPLIN has a CPU file, the other algorithms' settings do not depend on it
+    :return: the path, or ``None`` when the package ships no file for ``algo``
+    """
+    if budget not in BUDGETS:
+        raise ValueError(f"Unknown budget {budget!r}; accepted values: {list(BUDGETS)}")
+    if algo not in PACKAGED_ALGOS:
+        return None
+    name = f"{algo}_cpu" if algo == ALGO and budget == "cpu" else algo
+    return HYPERPARAMS_DIR / f"{name}.yml"
+
+
+def load_config(path: str | Path) -> dict[str, dict[str, Any]]:
+    """
+    Read an rl-zoo3 hyperparameter file (YAML anchors and merge keys resolved).
+
+    :param path: the ``.yml`` file
+    :return: env id -> hyperparameters
+    """
+    with open(path) as file:
+        content = yaml.safe_load(file)
+    if not isinstance(content, dict):
+        raise ValueError(f"{path} is not an rl-zoo3 hyperparameter file (expected a mapping of env ids)")
+    return content
+
+
+def default_config(algo: str, env_id: str, budget: str = "paper") -> str | None:
+    """
+    The ``--conf-file`` used when none is given: the packaged file when it has an entry for the env.
+
+    :param algo: rl-zoo3 algorithm name
+    :param env_id: gymnasium id
+    :param budget: ``"paper"`` or ``"cpu"`` (see :func:`config_path`)
+    :return: the file to pass, or ``None`` to let rl-zoo3 use its own file. POPLIN always gets the
+        packaged file, since rl-zoo3 has none for it.
+    """
+    path = config_path(algo, budget)
+    if path is None:
+        return None
+    if algo == ALGO or env_id in load_config(path):
+        return str(path)
+    return None
+
+
+def task_env_kwargs(env_id: str, env_kwargs: dict[str, Any] | None) -> dict[str, Any]:
+    """
+    Add the env kwargs that the task's reward function needs (``make_task(env_id).env_kwargs``).
+
+    :param env_id: gymnasium id
+    :param env_kwargs: the env kwargs of the config or command line; they win over the task's
+    :return: a new dict: ``env_kwargs`` plus the task's kwargs it lacks
+    """
+    merged = dict(env_kwargs or {})
+    if not has_task(env_id):
+        return merged
+    for key, value in make_task(env_id).env_kwargs.items():
+        if key not in merged:
+            merged[key] = value
+        elif merged[key] != value:
+            warnings.warn(
+                f"env_kwargs sets {key}={merged[key]!r} for {env_id}, but the task's reward function assumes "
+                f"{key}={value!r}: the planner's reward will be wrong unless a reward_fn is given.",
+                stacklevel=2,
+            )
+    return merged
+
+
+# ---------------------------------------------------------------------------------------- optuna sampler
+ELITE_FRACTIONS = (0.05, 0.1, 0.2)
+
+
+def convert_poplin_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
+    """
+    Turn sampled optuna parameters into POPLIN keyword arguments (``HYPERPARAMS_CONVERTER["poplin"]``,
+    used by rl-zoo3 to load a trial from a study).
+
+    :param sampled_params: trial parameters; ``elite_fraction`` becomes ``num_elites``
+    :return: POPLIN keyword arguments
+    """
+    params = dict(sampled_params)
+    fraction = params.pop("elite_fraction", None)
+    if fraction is not None:
+        params["num_elites"] = max(1, round(int(params["population_size"]) * float(fraction)))
+    return params
+
+
+def sample_poplin_params(
+    trial: optuna.Trial,
+    n_actions: int,
+    n_envs: int,
+    additional_args: dict[str, Any],
+    variant: str | None = None,
+) -> dict[str, Any]:
+    """
+    Sample POPLIN planner settings for rl-zoo3's ``-optimize`` (``HYPERPARAMS_SAMPLER["poplin"]``).
+
+    Every variant: horizon, population size and model epochs. CEM variants: elite fraction, CEM
+    iterations, momentum and initial variance (POPLIN-P in parameter units, 0.01-0.3; the others in
+    scaled action units, 0.05-1). POPLIN-A: the proposal; POPLIN-P: the noise and the distillation.
+
+    :param trial: the optuna trial
+    :param n_actions: action dimension (rl-zoo3 interface; unused)
+    :param n_envs: number of envs (rl-zoo3 interface; unused)
+    :param additional_args: rl-zoo3 interface (unused)
+    :param variant: the variant being tuned (the config's ``policy``); ``None`` samples it too
+    :return: POPLIN keyword arguments, merged by rl-zoo3 over the config's
+    """
+    del n_actions, n_envs, additional_args
+    sampled: dict[str, Any] = {}
+    if variant is None:
+        variant = str(trial.suggest_categorical("policy", list(POPLIN.policy_aliases)))
+        sampled["policy"] = variant
+    sampled["horizon"] = trial.suggest_categorical("horizon", [10, 15, 20, 25, 30])
+    sampled["population_size"] = trial.suggest_categorical("population_size", [100, 200, 300, 500])
+    sampled["model_epochs"] = trial.suggest_categorical("model_epochs", [3, 5, 10])
+    if variant != "rs":
+        sampled["elite_fraction"] = trial.suggest_categorical("elite_fraction", list(ELITE_FRACTIONS))
+        sampled["cem_iterations"] = trial.suggest_int("cem_iterations", 1, 5)
+        sampled["cem_alpha"] = trial.suggest_categorical("cem_alpha", [0.0, 0.1, 0.25])
+        low, high = (0.01, 0.3) if variant == "poplin-p" else (0.05, 1.0)
+        sampled["init_var"] = trial.suggest_float("init_var", low, high, log=True)
+    if variant == "poplin-a":
+        sampled["proposal"] = trial.suggest_categorical("proposal", ["init", "replan"])
+    if variant == "poplin-p":
+        sampled["noise"] = trial.suggest_categorical("noise", ["sep", "uni"])
+        sampled["distillation"] = trial.suggest_categorical("distillation", ["avg", "bc", "gan"])
+    return convert_poplin_params(sampled)
+
+
+# ---------------------------------------------------------------------------------------- zoo integration
+class PlayedPOPLIN(POPLIN):
+    """
+    POPLIN as loaded by ``enjoy`` and ``record_video``: with a one-transition replay buffer, since the
+    agent only acts (rl-zoo3 does this for a fixed list of its own off-policy algorithms only).
+    """
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfPlayedPOPLIN],
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: Any = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        control: str | None = None,
+        **kwargs: Any,
+    ) -> SelfPlayedPOPLIN:
+        """
+        Load a saved POPLIN agent for playing, as :meth:`POPLIN.load` with ``buffer_size`` 1 by default.
+
+        :param path: the saved zip
+        :param env: optional env (planning needs none)
+        :param device: torch device
+        :param custom_objects: saved attributes to replace (rl-zoo3 passes learning-rate placeholders)
+        :param print_system_info: print the saving and loading systems' info
+        :param force_reset: reset the env before the next ``learn``
+        :param control: ``"mpc"`` or ``"policy"`` to override the saved control mode
+        :param kwargs: attributes to set on the loaded agent (e.g. ``buffer_size``, ``seed``)
+        :return: the agent
+        """
+        kwargs.setdefault("buffer_size", 1)
+        return super().load(path, env, device, custom_objects, print_system_info, force_reset, control, **kwargs)
+
+
+class PoplinExperimentManager(ExperimentManager):
+    """
+    rl-zoo3's ``ExperimentManager`` with what POPLIN runs need: the task's env kwargs, the config's
+    env kwargs for the evaluation env and in ``args.yml``, the variant given to the ``-optimize``
+    sampler, and policy-control evaluations for POPLIN-A/P (``evaluations_policy.npz``).
+    """
+
+    #: add a policy-control evaluation next to the zoo's MPC evaluation (POPLIN-A/P runs)
+    policy_eval: ClassVar[bool] = True
+    poplin_variant: str | None = None
+
+    def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """
+        rl-zoo3's look-up, then: POPLIN's task env kwargs and its variant for the sampler; the env kwargs
+        for the evaluation env and ``args.yml``.
+
+        :return: the hyperparameters and the ones saved in ``config.yml``
+        """
+        hyperparams, saved_hyperparams = super().read_hyperparameters()
+        if self.algo == ALGO:
+            variant = hyperparams.get("policy")
+            self.poplin_variant = variant if isinstance(variant, str) else None
+            HYPERPARAMS_SAMPLER[ALGO] = functools.partial(sample_poplin_params, variant=self.poplin_variant)
+            env_kwargs = task_env_kwargs(self.env_name.gym_id, hyperparams.get("env_kwargs", self.env_kwargs))
+            if env_kwargs:
+                hyperparams["env_kwargs"] = env_kwargs
+                saved_hyperparams["env_kwargs"] = env_kwargs
+        if hyperparams.get("env_kwargs"):
+            # rl-zoo3 2.9 gives the config's env kwargs to the evaluation env only with --env-kwargs,
+            # and enjoy / record_video read them from args.yml
+            if self._eval_env_kwargs_args is None:
+                self.eval_env_kwargs = hyperparams["env_kwargs"]
+            if getattr(self.args, "env_kwargs", None) is None:
+                self.args.env_kwargs = dict(hyperparams["env_kwargs"])
+        return hyperparams, saved_hyperparams
+
+    def create_callbacks(self) -> None:
+        """rl-zoo3's callbacks, plus a policy-control evaluation for POPLIN-A/P (not during ``-optimize``)."""
+        super().create_callbacks()
+        if self.algo != ALGO or self.optimize_hyperparameters:
+            return
+        existing = [callback for callback in self.callbacks if isinstance(callback, ControlModesEvalCallback)]
+        for callback in existing:
+            if callback.log_path is None:
+                callback.log_path = self.save_path
+        if existing or not self.policy_eval or self.eval_freq <= 0 or self.poplin_variant not in POLICY_VARIANTS:
+            return
+        # same frequency (already per env) and episodes as the zoo's EvalCallback: matched steps
+        self.callbacks.append(
+            ControlModesEvalCallback(
+                eval_env=self.create_envs(self.n_eval_envs, eval_env=True),
+                eval_freq=self.eval_freq,
+                n_eval_episodes=self.n_eval_episodes,
+                log_path=self.save_path,
+                modes=("policy",),
+                deterministic=self.deterministic_eval,
+            )
+        )
+
+
+def register() -> None:
+    """Add ``poplin`` to rl-zoo3's algorithm table and its ``-optimize`` sampler and converter tables."""
+    ALGOS[ALGO] = POPLIN
+    HYPERPARAMS_SAMPLER.setdefault(ALGO, sample_poplin_params)
+    HYPERPARAMS_CONVERTER[ALGO] = convert_poplin_params
+
+
+def read_hyperparameters(
+    algo: str,
+    env_id: str,
+    conf_file: str | None = None,
+    hyperparams: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """
+    The hyperparameters ``train`` would use (rl-zoo3's own look-up, plus this module's env kwargs),
+    without creating anything.
+
+    :param algo: rl-zoo3 algorithm name
+    :param env_id: gymnasium id
+    :param conf_file: hyperparameter file; ``None``: as ``train`` picks it (:func:`default_config`)
+    :param hyperparams: ``-params`` overrides
+    :return: the hyperparameters, as saved in the run's ``config.yml``
+    """
+    register()
+    manager = PoplinExperimentManager(
+        argparse.Namespace(env_kwargs=None),
+        algo,
+        env_id,
+        log_folder=os.devnull,
+        hyperparams=hyperparams,
+        config=conf_file or default_config(algo, env_id),
+    )
+    _, saved = manager.read_hyperparameters()
+    return dict(saved)
+
+
+# ---------------------------------------------------------------------------------------- command line
+def _option_value(args: Sequence[str], *names: str) -> str | None:
+    """
+    :param args: a command line
+    :param names: the option's spellings
+    :return: the value of the last ``NAME VALUE`` or ``NAME=VALUE`` option, or ``None``
+    """
+    value = None
+    for index, arg in enumerate(args):
+        for name in names:
+            if arg == name and index + 1 < len(args):
+                value = args[index + 1]
+            elif arg.startswith(f"{name}="):
+                value = arg.split("=", 1)[1]
+    return value
+
+
+def _has_conf_file(args: Sequence[str]) -> bool:
+    """
+    :param args: a ``train`` command line
+    :return: whether it gives ``--conf-file`` (``-conf``, or a prefix of ``--conf-file``, as argparse accepts)
+    """
+    return any(arg == "-conf" or arg.startswith("-conf=") or arg.startswith("--conf") for arg in args)
+
+
+def train_args(args: Sequence[str]) -> list[str]:
+    """
+    The arguments handed to rl-zoo3's ``train``: ``args`` plus the default ``--conf-file``.
+
+    :param args: the ``train`` command line (without the command)
+    :return: the new argument list
+    """
+    args = list(args)
+    if not _has_conf_file(args):
+        algo = _option_value(args, "--algo") or "ppo"
+        env_id = _option_value(args, "--env") or "CartPole-v1"
+        conf = default_config(algo, env_id)
+        if conf is not None:
+            args += ["--conf-file", conf]
+    return args
+
+
+@contextmanager
+def _argv(prog: str, args: Sequence[str]) -> Iterator[None]:
+    """
+    Set ``sys.argv`` for an rl-zoo3 script, restored afterwards.
+
+    :param prog: the program name shown in the script's messages
+    :param args: its arguments
+    """
+    saved = sys.argv
+    sys.argv = [prog, *args]
+    try:
+        yield
+    finally:
+        sys.argv = saved
+
+
+def _train(args: Sequence[str]) -> None:
+    """
+    rl-zoo3 ``train`` with :class:`PoplinExperimentManager` and the default ``--conf-file``.
+
+    :param args: the ``train`` command line (plus ``--no-policy-eval``)
+    """
+    parser = argparse.ArgumentParser(add_help=False)
+    parser.add_argument("--no-policy-eval", action="store_true")
+    own, rest = parser.parse_known_args(list(args))
+    PoplinExperimentManager.policy_eval = not own.no_policy_eval
+    # rl_zoo3.train() builds its ExperimentManager from this module attribute
+    setattr(rl_zoo3.train, "ExperimentManager", PoplinExperimentManager)  # noqa: B010
+    with _argv("sb3-poplin-zoo train", train_args(rest)):
+        rl_zoo3.train.train()
+
+
+def _play(command: str, args: Sequence[str]) -> None:
+    """
+    rl-zoo3 ``enjoy`` or ``record_video``, with POPLIN loaded as :class:`PlayedPOPLIN`.
+
+    :param command: ``"enjoy"`` or ``"record_video"``
+    :param args: its command line
+    """
+    ALGOS[ALGO] = PlayedPOPLIN
+    with _argv(f"sb3-poplin-zoo {command}", args):
+        if command == "enjoy":
+            from rl_zoo3.enjoy import enjoy
+
+            enjoy()
+        else:  # record_video is a script with no entry function
+            runpy.run_module("rl_zoo3.record_video", run_name="__main__", alter_sys=False)
+
+
+def _figure_file(command: str, label: str, number: int) -> str:
+    """
+    :param command: the plot script
+    :param label: the figure's label
+    :param number: the figure's number (used when the label is empty)
+    :return: the PNG file name
+    """
+    slug = re.sub(r"[^0-9A-Za-z.-]+", "_", label).strip("_") or f"figure_{number}"
+    return f"{command}_{slug}.png"
+
+
+def _plots(command: str, args: Sequence[str]) -> list[str]:
+    """
+    Run an rl-zoo3 plot script and save its figures as PNGs.
+
+    :param command: ``"all_plots"``, ``"plot_train"`` or ``"plot_from_file"``
+    :param args: its command line, plus ``--output-dir DIR`` and ``--show``
+    :return: the PNG files written
+    """
+    parser = argparse.ArgumentParser(add_help=False)
+    parser.add_argument("--output-dir", default=".")
+    parser.add_argument("--show", action="store_true")
+    own, rest = parser.parse_known_args(list(args))
+    import matplotlib
+
+    if not own.show:
+        matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+    from rl_zoo3 import plots
+
+    os.makedirs(own.output_dir, exist_ok=True)
+    written: list[str] = []
+
+    def save_open_figures() -> None:
+        for number in plt.get_fignums():
+            figure = plt.figure(number)
+            path = os.path.join(own.output_dir, _figure_file(command, str(figure.get_label()), number))
+            figure.savefig(path, dpi=120, bbox_inches="tight")
+            if path not in written:
+                written.append(path)
+                print(f"Saved {path}")
+
+    original_show = plt.show
+
+    def show(*show_args: Any, **show_kwargs: Any) -> None:
+        save_open_figures()
+        if own.show:
+            original_show(*show_args, **show_kwargs)
+
+    script: Callable[[], None] = getattr(plots, command)
+    setattr(plt, "show", show)  # noqa: B010
+    try:
+        with _argv(f"sb3-poplin-zoo {command}", rest):
+            script()
+        save_open_figures()
+    finally:
+        setattr(plt, "show", original_show)  # noqa: B010
+        plt.close("all")
+    return written
+
+
+USAGE = f"""usage: sb3-poplin-zoo COMMAND [ARGS...]   (or: python -m sb3_poplin.zoo COMMAND [ARGS...])
+
+rl-zoo3 with POPLIN registered as --algo {ALGO}. Commands:
+  train         rl-zoo3 train; --conf-file defaults to sb3_poplin/hyperparams/<algo>.yml for
+                {", ".join(PACKAGED_ALGOS)} when it has the env; --no-policy-eval skips the
+                policy-control evaluation (evaluations_policy.npz) of POPLIN-A/P runs
+  enjoy         rl-zoo3 enjoy (POPLIN is loaded with a one-transition replay buffer)
+  record_video  rl-zoo3 record_video
+  plots NAME    one of {", ".join(PLOT_COMMANDS)} (also accepted as commands); every figure is saved
+                as a PNG in --output-dir (default .); --show also displays them
+
+Packaged hyperparameter files: {HYPERPARAMS_DIR}
+Run "sb3-poplin-zoo COMMAND -h" for the options of a command.
+"""
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """
+    Entry point of ``python -m sb3_poplin.zoo`` and the ``sb3-poplin-zoo`` console script.
+
+    :param argv: the command and its arguments; ``None``: ``sys.argv[1:]``
+    """
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help"):
+        print(USAGE)
+        return
+    command, rest = args[0], args[1:]
+    if command not in COMMANDS:
+        raise SystemExit(f"Unknown command {command!r}; accepted values: {list(COMMANDS)}\n\n{USAGE}")
+    register()
+    if command == "train":
+        _train(rest)
+    elif command in ("enjoy", "record_video"):
+        _play(command, rest)
+    else:
+        if command == "plots":
+            if not rest or rest[0] not in PLOT_COMMANDS:
+                raise SystemExit(f"plots needs one of {list(PLOT_COMMANDS)}, e.g. 'plots all_plots -a poplin -e ...'")
+            command, rest = rest[0], rest[1:]
+        _plots(command, rest)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,229 @@
+"""rl-zoo3 integration: the sb3_poplin.zoo front end, the packaged hyperparameter files and benchmarks/compare.py."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import optuna
+import pytest
+import yaml
+
+from sb3_poplin import zoo
+from sb3_poplin.envs import ENV_IDS
+from sb3_poplin.poplin import POPLIN
+
+REPO = Path(__file__).resolve().parent.parent
+TASKS = [
+    "Pendulum-v1",
+    "InvertedPendulum-v5",
+    "InvertedDoublePendulum-v5",
+    "HalfCheetah-v5",
+    "Hopper-v5",
+    "Walker2d-v5",
+    "Ant-v5",
+    "Swimmer-v5",
+    "Reacher-v5",
+    "Pusher-v5",
+    *ENV_IDS,  # the package's own sb3_poplin/... tasks
+]
+MODEL_FREE = ["sac", "td3", "ppo", "crossq", "tqc"]
+# a planner small enough for a few hundred steps in a test
+TINY_POPLIN = [
+    "horizon:5",
+    "population_size:20",
+    "num_elites:4",
+    "cem_iterations:1",
+    "ensemble_size:2",
+    "dynamics_net_arch:[16,16]",
+    "model_epochs:1",
+    "buffer_size:1000",
+]
+
+
+def run(args: list[str], cwd: Path, timeout: int = 300) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    process = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout, check=False)
+    assert process.returncode == 0, process.stdout[-3000:] + process.stderr[-3000:]
+    return process
+
+
+def load_yaml(path: Path) -> dict:
+    with open(path) as file:
+        return yaml.load(file, Loader=yaml.UnsafeLoader)  # the zoo writes OrderedDicts
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A POPLIN-P run on Pendulum-v1 through the zoo: one random episode, one planned, one evaluation."""
+    folder = tmp_path_factory.mktemp("zoo")
+    zoo_train = [sys.executable, "-m", "sb3_poplin.zoo", "train", "--algo", "poplin", "--env", "Pendulum-v1"]
+    args = ["-n", "400", "--num-threads", "1", "--seed", "0", "-f", "logs", "--eval-freq", "400", "--eval-episodes", "2"]
+    run([*zoo_train, *args, "-params", *TINY_POPLIN], folder)
+    return folder
+
+
+def test_train_writes_the_zoo_files(trained: Path) -> None:
+    run_dir = trained / "logs" / "poplin" / "Pendulum-v1_1"
+    assert (run_dir / "Pendulum-v1.zip").is_file()
+    with np.load(run_dir / "evaluations.npz") as mpc, np.load(run_dir / "evaluations_policy.npz") as policy:
+        assert mpc["timesteps"].tolist() == [400] and mpc["results"].shape == (1, 2)
+        assert policy["timesteps"].tolist() == [400] and policy["results"].shape == (1, 2)
+    config = dict(load_yaml(run_dir / "Pendulum-v1" / "config.yml"))
+    assert config["policy"] == "poplin-p" and config["horizon"] == 5 and config["train_freq"] == [1, "episode"]
+    args = dict(load_yaml(run_dir / "Pendulum-v1" / "args.yml"))
+    assert args["conf_file"] == str(zoo.config_path("poplin"))
+
+
+def test_enjoy_loads_and_plays(trained: Path) -> None:
+    zoo_enjoy = [sys.executable, "-m", "sb3_poplin.zoo", "enjoy", "--algo", "poplin", "--env", "Pendulum-v1"]
+    process = run([*zoo_enjoy, "-f", "logs", "--no-render", "-n", "50", "--num-threads", "1"], trained)
+    assert "Loading logs/poplin/Pendulum-v1_1/Pendulum-v1.zip" in process.stdout
+
+
+def test_played_poplin_has_no_big_replay_buffer(trained: Path) -> None:
+    path = trained / "logs" / "poplin" / "Pendulum-v1_1" / "Pendulum-v1.zip"
+    model = zoo.PlayedPOPLIN.load(path)
+    assert model.replay_buffer is not None and model.replay_buffer.buffer_size == 1
+    assert POPLIN.load(path).buffer_size == 1000
+
+
+def test_plots_writes_png(trained: Path, tmp_path: Path) -> None:
+    pytest.importorskip("seaborn")
+    pytest.importorskip("scipy")
+    args = ["plot_train", "-a", "poplin", "-e", "Pendulum-v1", "-f", str(trained / "logs"), "-w", "1"]
+    zoo.main(["plots", *args, "--output-dir", str(tmp_path)])
+    assert (tmp_path / "plot_train_Training_Episodic_Reward.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("algo", MODEL_FREE)
+def test_packaged_v5_settings_are_used(algo: str, capsys: pytest.CaptureFixture[str]) -> None:
+    budgets = zoo.load_config(zoo.config_path("poplin"))
+    for env_id in TASKS:
+        hyperparams = zoo.read_hyperparameters(algo, env_id)
+        assert hyperparams["n_timesteps"] == budgets[env_id]["n_timesteps"]
+    output = capsys.readouterr().out
+    assert "Using 'default' hyperparameters" not in output
+    assert f"Loading hyperparameters from: {zoo.config_path(algo)}" in output
+
+
+def test_hyperparameter_files_share_tasks_and_budgets() -> None:
+    paper = zoo.load_config(zoo.config_path("poplin"))
+    assert sorted(paper) == sorted(TASKS)
+    assert sorted(zoo.load_config(zoo.config_path("poplin", "cpu"))) == sorted(TASKS)
+    for algo in MODEL_FREE:
+        config = zoo.load_config(zoo.config_path(algo))
+        assert sorted(config) == sorted(TASKS), algo
+        assert {env: entry["n_timesteps"] for env, entry in config.items()} == {
+            env: entry["n_timesteps"] for env, entry in paper.items()
+        }, algo
+
+
+@pytest.mark.parametrize("budget", zoo.BUDGETS)
+def test_poplin_entries_build_and_keep_the_task_env_kwargs(budget: str) -> None:
+    from sb3_poplin.tasks import has_task, make_task
+
+    for env_id, entry in zoo.load_config(zoo.config_path("poplin", budget)).items():
+        assert entry["policy"] in POPLIN.policy_aliases and entry["train_freq"] == [1, "episode"]
+        if has_task(env_id):
+            assert make_task(env_id).env_kwargs.items() <= entry.get("env_kwargs", {}).items(), env_id
+    settings = dict(zoo.load_config(zoo.config_path("poplin", budget))["Pendulum-v1"])
+    del settings["n_timesteps"]
+    settings["train_freq"] = tuple(settings["train_freq"])  # as the zoo passes it
+    for variant in POPLIN.policy_aliases:  # a valid set of POPLIN arguments, and one override switches the variant
+        POPLIN(env="Pendulum-v1", **{**settings, "policy": variant})
+
+
+def test_env_kwargs_reach_the_eval_env_and_args() -> None:
+    manager = zoo.PoplinExperimentManager(
+        SimpleNamespace(env_kwargs=None),
+        "poplin",
+        "HalfCheetah-v5",
+        log_folder=os.devnull,
+        config=zoo.default_config("poplin", "HalfCheetah-v5"),
+    )
+    hyperparams, _ = manager.read_hyperparameters()
+    expected = {"exclude_current_positions_from_observation": False}
+    assert hyperparams["env_kwargs"] == expected
+    assert manager.eval_env_kwargs == expected and manager.args.env_kwargs == expected
+
+
+def test_task_env_kwargs_are_added(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(zoo, "has_task", lambda env_id: True)
+    monkeypatch.setattr(zoo, "make_task", lambda env_id: SimpleNamespace(env_kwargs={"keep_x": True}))
+    assert zoo.task_env_kwargs("Any-v0", None) == {"keep_x": True}
+    assert zoo.task_env_kwargs("Any-v0", {"other": 1}) == {"other": 1, "keep_x": True}
+    with pytest.warns(UserWarning, match="reward function assumes"):
+        assert zoo.task_env_kwargs("Any-v0", {"keep_x": False}) == {"keep_x": False}
+
+
+def test_default_conf_file() -> None:
+    assert zoo.train_args(["--algo", "sac", "--env", "HalfCheetah-v5"])[-2:] == ["--conf-file", str(zoo.config_path("sac"))]
+    assert zoo.train_args(["--algo=poplin", "--env=Foo-v0"])[-1] == str(zoo.config_path("poplin"))
+    assert zoo.train_args(["--algo", "sac", "--env", "HalfCheetah-v4"]) == ["--algo", "sac", "--env", "HalfCheetah-v4"]
+    given = ["--algo", "poplin", "--env", "Pendulum-v1", "-conf", "mine.yml"]
+    assert zoo.train_args(given) == given
+    with pytest.raises(ValueError, match="budget"):
+        zoo.config_path("poplin", "gpu")
+
+
+@pytest.mark.parametrize("variant", [*POPLIN.policy_aliases, None])
+def test_optuna_sampler(variant: str | None) -> None:
+    zoo.register()
+    from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
+
+    assert "poplin" in HYPERPARAMS_SAMPLER and HYPERPARAMS_CONVERTER["poplin"] is zoo.convert_poplin_params
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    for _ in range(5):
+        trial = study.ask()
+        params = zoo.sample_poplin_params(trial, 1, 1, {}, variant=variant)
+        assert params == zoo.convert_poplin_params(trial.params)  # a stored trial converts to the same settings
+        chosen = variant or params["policy"]
+        if chosen != "rs":
+            assert 1 <= params["num_elites"] <= params["population_size"]
+        assert ("noise" in params) == (chosen == "poplin-p") and ("proposal" in params) == (chosen == "poplin-a")
+
+
+def test_unknown_command() -> None:
+    with pytest.raises(SystemExit, match="Unknown command"):
+        zoo.main(["fly"])
+    with pytest.raises(SystemExit, match="plots needs"):
+        zoo.main(["plots", "nothing"])
+
+
+# ------------------------------------------------------------------------------------------------ compare.py
+def compare(tmp_path: Path, *extra: str) -> tuple[dict, str]:
+    params = [f"poplin:{setting}" for setting in TINY_POPLIN]
+    args = ["--algos", "poplin", "sac", "--envs", "Pendulum-v1", "-n", "400", "--n-evals", "2", "--eval-episodes", "2"]
+    args += ["--log-folder", str(tmp_path / "logs"), "--output", str(tmp_path / "report"), "--params", *params, *extra]
+    process = run([sys.executable, str(REPO / "benchmarks" / "compare.py"), *args], tmp_path, timeout=900)
+    assert (tmp_path / "report" / "curves_Pendulum-v1.png").stat().st_size > 0
+    table = (tmp_path / "report" / "results.md").read_text()
+    assert "| Pendulum-v1 | 400 |" in table and "POPLIN-P (policy)" in table and "SAC" in table
+    return json.loads((tmp_path / "report" / "results.json").read_text()), process.stdout
+
+
+@pytest.mark.slow
+def test_compare_locally(tmp_path: Path) -> None:
+    results, output = compare(tmp_path, "--seeds", "0", "1", "--jobs", "2")
+    assert output.count("[done]") == 4
+    labels = results["tasks"][0]["labels"]
+    assert sorted(labels) == ["POPLIN-P (MPC)", "POPLIN-P (policy)", "SAC"]
+    assert all(len(entry["final"]) == 2 for entry in labels.values())
+    # a second call finds the complete runs and trains nothing
+    again, output = compare(tmp_path, "--seeds", "0", "1", "--jobs", "2")
+    assert output.count("[reused]") == 4 and again["tasks"] == results["tasks"]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="Ray is not installed (pip install 'sb3_poplin[ray]')")
+def test_compare_through_local_ray(tmp_path: Path) -> None:
+    results, output = compare(tmp_path, "--seeds", "0", "--jobs", "2", "--ray-address", "local")
+    assert output.count("[done]") == 2
+    assert all(run["returncode"] == 0 and run["run_dir"] for run in results["runs"])
