@@ -1,6 +1,6 @@
 """
 Resident memory over many training iterations: RSS after every model fit + distillation. With a
-small replay buffer that fills early, RSS must stay flat once the buffer is full. Adds one row to
+small replay buffer and distillation window that fill early, RSS must stay flat once both are full. Adds one row to
 benchmarks/RESULTS.md.
 
     python benchmarks/memory_soak.py [--variant poplin-p] [--iterations 25] [--buffer-size 2000]
@@ -52,6 +52,7 @@ def main() -> None:
     parser.add_argument("--distillation", default="gan")
     parser.add_argument("--iterations", type=int, default=25)
     parser.add_argument("--buffer-size", type=int, default=2000)
+    parser.add_argument("--distill-window", type=int, default=None, help="default: the buffer size")
     args = parser.parse_args()
     th.set_num_threads(1)
     model = POPLIN(
@@ -59,6 +60,7 @@ def main() -> None:
         "Pendulum-v1",
         seed=0,
         buffer_size=args.buffer_size,
+        distill_window=args.distill_window or args.buffer_size,
         distillation=args.distillation if args.variant == "poplin-p" else None,
         horizon=10,
         population_size=50,
@@ -80,8 +82,8 @@ def main() -> None:
     machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}"
     append_row(
         "Memory over training iterations (`benchmarks/memory_soak.py`)",
-        "RSS after each model fit + distillation (Pendulum-v1, 200-step episodes). The buffer fills after "
-        "buffer_size / 200 iterations; after that RSS must stay flat.",
+        "RSS after each model fit + distillation (Pendulum-v1, 200-step episodes). The replay buffer and the "
+        "distillation window fill after buffer_size / 200 iterations; after that RSS must stay flat.",
         ["date", "command", "RSS per iteration (MiB)", "range once the buffer is full", "machine"],
         [
             str(datetime.date.today()),
