@@ -38,3 +38,12 @@ def test_random_shooting_beats_random_on_pendulum():
     model.learn(2000)
     returns, _ = evaluate_policy(model, model.get_env(), n_eval_episodes=5, return_episode_rewards=True)
     assert np.mean(returns) >= RANDOM_PENDULUM / 2, returns
+
+
+@pytest.mark.slow
+def test_learned_reward_learns_pendulum():
+    model = POPLIN("pets", "Pendulum-v1", seed=0, learned_reward=True, **CPU_SETTINGS)
+    assert model.planner.reward_fn is None  # the planner scores with the model's reward head
+    model.learn(3000)
+    returns, _ = evaluate_policy(model, model.get_env(), n_eval_episodes=10, return_episode_rewards=True)
+    assert np.mean(returns) >= -400, returns
