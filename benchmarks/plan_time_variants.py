@@ -16,9 +16,7 @@ import argparse
 import datetime
 import os
 import platform
-import statistics
 import sys
-import time
 import warnings
 
 import torch as th
@@ -27,6 +25,7 @@ from sb3_poplin import POPLIN
 from sb3_poplin.demo import CPU_SETTINGS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from planning_speed import time_plans
 from results_file import append_row
 
 SETTINGS = {
@@ -58,15 +57,7 @@ def plan_time(env_id: str, settings: dict, variant: dict, repeats: int) -> float
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model = POPLIN(env=env_id, seed=0, **variant, **settings)
-    obs = model.observation_space.sample()
-    for _ in range(2):
-        model.predict(obs)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        model.predict(obs)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return time_plans(model, model.observation_space.sample(), repeats)
 
 
 def main() -> None:
