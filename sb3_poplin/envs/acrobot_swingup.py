@@ -8,6 +8,8 @@ import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
+from sb3_poplin.envs.integration import rk4
+
 # Observation layout: [cos q1, sin q1, cos q2, sin q2, q1_dot, q2_dot] (gymnasium Acrobot's layout).
 ACROBOT_COS1, ACROBOT_SIN1, ACROBOT_COS2, ACROBOT_SIN2, ACROBOT_Q1_DOT, ACROBOT_Q2_DOT = range(6)
 
@@ -113,14 +115,7 @@ class AcrobotSwingUpEnv(gym.Env[NDArray[np.float64], NDArray[np.float32]]):
         :return: observation, reward, terminated (always False), truncated (False: the TimeLimit truncates), info
         """
         torque = self.max_torque * float(np.clip(np.asarray(action, dtype=np.float64).reshape(-1)[0], -1.0, 1.0))
-        state, h = self.state, self.dt / self.substeps
-        for _ in range(self.substeps):
-            k1 = self._derivatives(state, torque)
-            k2 = self._derivatives(state + 0.5 * h * k1, torque)
-            k3 = self._derivatives(state + 0.5 * h * k2, torque)
-            k4 = self._derivatives(state + h * k3, torque)
-            state = state + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        self.state = state
+        self.state = rk4(self._derivatives, self.state, torque, self.dt, self.substeps)
         observation = self._observation()
         cos1, sin1 = observation[ACROBOT_COS1], observation[ACROBOT_SIN1]
         cos2, sin2 = observation[ACROBOT_COS2], observation[ACROBOT_SIN2]

@@ -8,6 +8,8 @@ import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
+from sb3_poplin.envs.integration import rk4
+
 # Observation layout: [cart x, cart velocity, cos(theta), sin(theta), pole angular velocity], theta = 0 upright.
 CARTPOLE_X, CARTPOLE_X_DOT, CARTPOLE_COS, CARTPOLE_SIN, CARTPOLE_THETA_DOT = 0, 1, 2, 3, 4
 # Reward on the state after the step: cos(theta') - CARTPOLE_X_COST * x'^2
@@ -103,12 +105,7 @@ class CartPoleSwingUpEnv(gym.Env[NDArray[np.float64], NDArray[np.float32]]):
         :return: observation, reward, terminated (always False), truncated (False: the TimeLimit truncates), info
         """
         force = self.max_force * float(np.clip(np.asarray(action, dtype=np.float64).reshape(-1)[0], -1.0, 1.0))
-        state, dt = self.state, self.dt
-        k1 = self._derivatives(state, force)
-        k2 = self._derivatives(state + 0.5 * dt * k1, force)
-        k3 = self._derivatives(state + 0.5 * dt * k2, force)
-        k4 = self._derivatives(state + dt * k3, force)
-        self.state = state + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        self.state = rk4(self._derivatives, self.state, force, self.dt)
         observation = self._observation()
         reward = float(observation[CARTPOLE_COS] - CARTPOLE_X_COST * observation[CARTPOLE_X] ** 2)
         return observation, reward, False, False, {"force": force}
