@@ -334,14 +334,19 @@ class POPLIN(OffPolicyAlgorithm):
             self._setup_model()
 
     # ------------------------------------------------------------------ settings
-    def _check_settings(self) -> None:
-        def positive(name: str) -> None:
+    def _check_positive_ints(self, *names: str, optional: bool = False) -> None:
+        """Each named setting must be an integer >= 1 (or None when ``optional``)."""
+        for name in names:
             value = getattr(self, name)
+            if optional and value is None:
+                continue
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
 
-        for name in ("horizon", "population_size", "cem_iterations", "ensemble_size", "model_epochs", "model_batch_size"):
-            positive(name)
+    def _check_settings(self) -> None:
+        self._check_positive_ints(
+            "horizon", "population_size", "cem_iterations", "ensemble_size", "model_epochs", "model_batch_size"
+        )
         if self.variant != "rs" and not 1 <= self.num_elites <= self.population_size:
             raise ValueError(
                 f"num_elites must be between 1 and population_size ({self.population_size}), got {self.num_elites}"
@@ -382,10 +387,8 @@ class POPLIN(OffPolicyAlgorithm):
             raise ValueError(
                 f"Unknown distillation {self.distillation!r} for {self.variant!r}; accepted values: {list(accepted)}"
             )
-        for name in ("policy_epochs", "policy_batch_size", "distill_window"):
-            value = getattr(self, name)
-            if value is not None and (not isinstance(value, (int, np.integer)) or value < 1):
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        self._check_positive_ints("policy_batch_size")
+        self._check_positive_ints("policy_epochs", "distill_window", optional=True)
 
     def _resolve_variant_defaults(self) -> None:
         """Resolve every ``None`` default that depends on the variant, in one place."""
