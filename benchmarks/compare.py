@@ -37,7 +37,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-ALGOS = ("poplin", "sac", "td3", "ppo", "crossq", "tqc")
+# POPLIN variants run as the zoo algorithm "poplin" with ``policy`` set; "poplin" alone is the file's variant
+VARIANTS = ("poplin-p", "poplin-a", "pets", "rs")
+ALGOS = ("poplin", *VARIANTS, "sac", "td3", "ppo", "crossq", "tqc")
 BUDGETS = ("cpu", "paper")
 POLICY_VARIANTS = ("poplin-a", "poplin-p")
 # files of a run directory sent back by a Ray task (for clusters without a shared file system)
@@ -83,7 +85,7 @@ class Job:
     """
     One training run.
 
-    :param algo: rl-zoo3 algorithm name
+    :param algo: rl-zoo3 algorithm name, or a POPLIN variant (``poplin-p``, ``pets`` ...)
     :param env: gymnasium id
     :param seed: random seed
     :param n_timesteps: training steps
@@ -107,13 +109,29 @@ class Job:
     python: str
 
     @property
+    def zoo_algo(self) -> str:
+        """The rl-zoo3 algorithm of the run (``poplin`` for every POPLIN variant)."""
+        return "poplin" if self.algo in VARIANTS else self.algo
+
+    @property
+    def column(self) -> str:
+        """The report's name of the algorithm: the POPLIN variant that runs (``-params``, else the file's)."""
+        if self.zoo_algo != "poplin":
+            return self.algo
+        for setting in self.params:
+            if setting.startswith("policy:"):
+                return str(parse_value(setting.split(":", 1)[1]))
+        entry = read_yaml(Path(self.conf_file)).get(self.env, {}) if self.conf_file else {}
+        return str(entry.get("policy", self.algo))
+
+    @property
     def name(self) -> str:
         """A file-name-safe name of the job."""
         return f"{self.algo}_{env_name(self.env)}_seed{self.seed}"
 
     def command(self) -> list[str]:
         """:return: the command line of the run"""
-        command = [self.python, "-m", "sb3_poplin.zoo", "train", "--algo", self.algo, "--env", self.env]
+        command = [self.python, "-m", "sb3_poplin.zoo", "train", "--algo", self.zoo_algo, "--env", self.env]
         command += ["--seed", str(self.seed), "-f", self.log_folder, "-uuid", "--num-threads", "1"]
         command += ["-n", str(self.n_timesteps), "--eval-freq", str(self.eval_freq)]
         command += ["--eval-episodes", str(self.eval_episodes)]
@@ -130,7 +148,7 @@ class Job:
         """
         expected = {key.split(":", 1)[0]: parse_value(key.split(":", 1)[1]) for key in self.params}
         return (
-            args.get("algo") == self.algo
+            args.get("algo") == self.zoo_algo
             and args.get("env") == self.env
             and args.get("seed") == self.seed
             and args.get("n_timesteps") == self.n_timesteps
@@ -165,7 +183,7 @@ def find_run(job: Job) -> str | None:
     :param job: the job
     :return: the newest complete run of ``job`` in its log folder (relative path), or ``None``
     """
-    root = Path(job.log_folder) / job.algo
+    root = Path(job.log_folder) / job.zoo_algo
     if not root.is_dir():
         return None
     name = env_name(job.env)
@@ -312,7 +330,7 @@ def load_curves(result: JobResult) -> list[Curve]:
     assert result.run_dir is not None
     run = Path(job.log_folder) / result.run_dir
     files = {job.algo.upper(): run / "evaluations.npz"}
-    if job.algo == "poplin":
+    if job.zoo_algo == "poplin":
         with open(run / env_name(job.env) / "config.yml") as file:
             config = yaml.load(file, Loader=yaml.UnsafeLoader)  # written by the zoo (an OrderedDict)
         variant = str(dict(config).get("policy", "poplin")).upper()
@@ -383,9 +401,9 @@ def format_cell(summary: dict[str, Any], label: str, algo: str) -> str:
 def label_algo(label: str) -> str:
     """
     :param label: column label, e.g. ``"POPLIN-P (MPC)"`` or ``"SAC"``
-    :return: its rl-zoo3 algorithm name
+    :return: its algorithm (a POPLIN variant for POPLIN's columns), as ``Job.column`` names it
     """
-    return "poplin" if label.startswith("POPLIN") or label in ("PETS (MPC)", "RS (MPC)") else label.lower()
+    return label.removesuffix(" (MPC)").removesuffix(" (policy)").lower()
 
 
 def write_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> None:
@@ -468,9 +486,9 @@ def write_report(results: list[JobResult], envs: list[str], budget: str, output:
         failed: dict[str, int] = {}
         expected: dict[str, int] = {}
         for result in env_results:
-            expected[result.job.algo] = expected.get(result.job.algo, 0) + 1
+            expected[result.job.column] = expected.get(result.job.column, 0) + 1
             if result.run_dir is None:
-                failed[result.job.algo] = failed.get(result.job.algo, 0) + 1
+                failed[result.job.column] = failed.get(result.job.column, 0) + 1
         summaries.append(summarize(env, curves, failed, expected))
         if curves:
             plot_curves(env, curves, budget, output / f"curves_{env_name(env)}.png")
@@ -501,15 +519,18 @@ def algo_settings(
 
     :return: the ``--conf-file`` (``None``: the zoo's own) and the ``-params`` overrides
     """
-    conf: Path | None = poplin_conf if algo == "poplin" else hyperparams_dir() / f"{algo}.yml"
+    is_poplin = algo == "poplin" or algo in VARIANTS
+    conf: Path | None = poplin_conf if is_poplin else hyperparams_dir() / f"{algo}.yml"
     entry = read_yaml(conf).get(env) if conf is not None and conf.is_file() else None
-    if entry is None and algo == "poplin":
+    if entry is None and is_poplin:
         raise SystemExit(f"{env} has no entry in {poplin_conf}.")
     if entry is None:
         return None, params  # the zoo's own file
+    if algo in VARIANTS and not any(setting.startswith("policy:") for setting in params):
+        params = [f"policy:{algo!r}", *params]  # the task's settings, with this variant's own defaults
     learning_starts = int(entry.get("learning_starts", 0))
     overridden = any(setting.startswith("learning_starts:") for setting in params)
-    if algo != "poplin" and learning_starts >= n_timesteps / 2 and not overridden:
+    if not is_poplin and learning_starts >= n_timesteps / 2 and not overridden:
         if options.keep_learning_starts:
             print(f"warning: {algo} on {env} learns only after {learning_starts} of its {n_timesteps} steps")
         else:

@@ -172,14 +172,26 @@ def gan_distillation(
 
 
 @th.no_grad()
-def average_perturbation(policy: PolicyNetwork, perturbations: th.Tensor) -> dict[str, float]:
+def average_perturbation(policy: PolicyNetwork, perturbations: th.Tensor, step_size: float = 1.0) -> dict[str, float]:
     """
-    POPLIN-P Avg: ``theta <- theta + mean(omega)``.
+    POPLIN-P Avg: ``theta <- theta + step_size * mean(omega)`` (the paper's equation with ``step_size = 1``).
 
     :param policy: the policy network
     :param perturbations: planned parameter perturbations ``[B, W]``
+    :param step_size: fraction of the mean perturbation to apply
     :return: logged statistics
     """
-    step = perturbations.mean(dim=0)
+    step = perturbations.mean(dim=0).mul_(step_size)
     policy.add_to_parameters(step)
     return {"avg_step_norm": step.norm().item()}
+
+
+@th.no_grad()
+def saturated_fraction(policy: PolicyNetwork, states: th.Tensor) -> float:
+    """
+    :param policy: the policy network
+    :param states: raw observations ``[B, o]``
+    :return: the fraction of action components the network puts beyond [-1, 1], where the clip makes it
+        insensitive to its parameters (logged as ``train/policy_saturation``)
+    """
+    return float((policy(states).abs() > 1.0).float().mean())

@@ -36,7 +36,13 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_poplin.distillation import DISTILLATIONS, average_perturbation, behaviour_cloning, gan_distillation
+from sb3_poplin.distillation import (
+    DISTILLATIONS,
+    average_perturbation,
+    behaviour_cloning,
+    gan_distillation,
+    saturated_fraction,
+)
 from sb3_poplin.dynamics import PROPAGATIONS
 from sb3_poplin.planning import (
     CEM,
@@ -171,6 +177,10 @@ class POPLIN(OffPolicyAlgorithm):
     :param distill_window: BC and GAN train on the most recent ``distill_window`` planned real steps (the
         actions the planner executed, which stay valid targets as the policy changes); ``None``: only the steps
         since the last distillation, as in the original code. Avg always uses the steps since the last update.
+    :param avg_step_size: POPLIN-P Avg only: ``theta <- theta + avg_step_size * mean(omega)``, in (0, 1]. 1 is the
+        paper's equation, which drives the clipped policy output into saturation within a few episodes (a
+        policy stuck at full torque that the parameter noise cannot leave); 0.1 averages the planner's
+        perturbations over about ten episodes (see the README)
     :param policy_net_arch: hidden widths of the policy network (tanh); ``None``: POPLIN-A [64, 64], POPLIN-P [32]
     :param policy_learning_rate: Adam learning rate of the policy network (and the GAN discriminator)
     :param policy_epochs: maximum BC epochs per distillation (early stopping on a 20 % holdout), or GAN epochs
@@ -233,6 +243,7 @@ class POPLIN(OffPolicyAlgorithm):
         distillation: str | None = None,
         distill_imagined: bool | None = None,
         distill_window: int | None = 10_000,
+        avg_step_size: float = 0.1,
         policy_net_arch: Sequence[int] | None = None,
         policy_learning_rate: float = 3e-3,
         policy_epochs: int | None = None,
@@ -284,6 +295,7 @@ class POPLIN(OffPolicyAlgorithm):
         self.distillation = distillation
         self.distill_imagined = distill_imagined
         self.distill_window = distill_window
+        self.avg_step_size = avg_step_size
         self.policy_net_arch = None if policy_net_arch is None else list(policy_net_arch)
         self.policy_learning_rate = policy_learning_rate
         self.policy_epochs = policy_epochs
@@ -389,6 +401,8 @@ class POPLIN(OffPolicyAlgorithm):
             )
         self._check_positive_ints("policy_batch_size")
         self._check_positive_ints("policy_epochs", "distill_window", optional=True)
+        if not 0.0 < self.avg_step_size <= 1.0:
+            raise ValueError(f"avg_step_size must be in (0, 1] (1 = the paper's Avg), got {self.avg_step_size}")
 
     def _resolve_variant_defaults(self) -> None:
         """Resolve every ``None`` default that depends on the variant, in one place."""
@@ -663,9 +677,9 @@ class POPLIN(OffPolicyAlgorithm):
             blocks = new["blocks"]
             if "elite_blocks" in new:
                 blocks = th.cat([blocks, new["elite_blocks"].flatten(0, 1)])
-            stats = average_perturbation(actor, blocks)
+            stats = average_perturbation(actor, blocks, self.avg_step_size)
             actor.update_whitening(new["states"])
-            return stats
+            return {**stats, "policy_saturation": saturated_fraction(actor, new["states"])}
         for key, value in new.items():
             kept = th.cat([self._distill_data[key], value]) if key in self._distill_data else value
             self._distill_data[key] = kept if self.distill_window is None else kept[-self.distill_window :]
@@ -702,7 +716,8 @@ class POPLIN(OffPolicyAlgorithm):
                     batch_size=self.policy_batch_size,
                     generator=self._generator,
                 )
-        return {**stats, "policy_samples": float(states.shape[0])}
+        saturation = saturated_fraction(actor, new["states"])
+        return {**stats, "policy_samples": float(states.shape[0]), "policy_saturation": saturation}
 
     def train(self, gradient_steps: int, batch_size: int) -> None:
         """Refit the dynamics model on all data (``model_epochs`` epochs), then distill the policy."""

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import torch as th
 from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_poplin import POPLIN
@@ -47,3 +48,16 @@ def test_learned_reward_learns_pendulum():
     model.learn(3000)
     returns, _ = evaluate_policy(model, model.get_env(), n_eval_episodes=10, return_episode_rewards=True)
     assert np.mean(returns) >= -400, returns
+
+
+@pytest.mark.slow
+def test_poplin_p_sep_avg_learns_pendulum():
+    """The packaged POPLIN-P (Sep noise, Avg distillation): MPC and an unsaturated policy network."""
+    model = POPLIN("poplin-p", "Pendulum-v1", seed=0, noise="sep", distillation="avg", **CPU_SETTINGS)
+    model.learn(3000)
+    returns, _ = evaluate_policy(model, model.get_env(), n_eval_episodes=10, return_episode_rewards=True)
+    assert np.mean(returns) >= -300, returns
+    states = th.as_tensor(model.replay_buffer.observations[: model.replay_buffer.pos, 0])
+    with th.no_grad():
+        raw = model.policy.actor(states.to(model.device))
+    assert (raw.abs() > 1).float().mean() < 0.5, "Avg drove the policy output into saturation"

@@ -64,6 +64,8 @@ def test_unsupported_spaces_are_rejected(observation_space, action_space, messag
         (dict(cem_alpha=-0.1), r"cem_alpha must be in \[0, 1\)"),
         (dict(init_var=-1.0), "init_var must be > 0"),
         (dict(policy_epochs=0), "policy_epochs must be an integer >= 1"),
+        (dict(avg_step_size=0.0), r"avg_step_size must be in \(0, 1\]"),
+        (dict(avg_step_size=1.5), r"avg_step_size must be in \(0, 1\]"),
     ],
 )
 def test_out_of_range_settings_are_rejected(kwargs, message):

@@ -7,7 +7,7 @@ from torch.func import functional_call
 
 from sb3_poplin import POPLIN
 from sb3_poplin.callbacks import ControlModesEvalCallback
-from sb3_poplin.distillation import average_perturbation, behaviour_cloning, gan_distillation
+from sb3_poplin.distillation import average_perturbation, behaviour_cloning, gan_distillation, saturated_fraction
 from sb3_poplin.dynamics import ProbabilisticEnsemble
 from sb3_poplin.planning import MPCPlanner, PolicyActionNoise, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, PolicyNetwork
@@ -155,6 +155,22 @@ def test_average_moves_theta_by_exactly_the_mean_perturbation():
     omegas = th.randn(25, policy.num_params)
     average_perturbation(policy, omegas)
     assert th.allclose(policy.flat_parameters() - theta, omegas.mean(dim=0), atol=1e-6)
+    average_perturbation(policy, omegas, step_size=0.25)
+    expected = theta + 1.25 * omegas.double().mean(dim=0).float()
+    assert th.allclose(policy.flat_parameters(), expected, atol=1e-5)
+
+
+def test_saturated_fraction_counts_components_beyond_the_clip():
+    policy = whitened_policy()
+    states = th.randn(40, 3)
+    raw = policy(states)
+    expected = float((raw.abs() > 1).float().mean())
+    assert saturated_fraction(policy, states) == expected
+    assert th.equal(policy.biases[-1], th.zeros(2))  # whitening changes the first layer only
+    with th.no_grad():
+        policy.biases[-1].copy_(th.tensor([50.0, 0.0]))
+    # the first output is pushed far beyond +1 for every state, the second keeps its values
+    assert saturated_fraction(policy, states) == 0.5 + float((raw[:, 1].abs() > 1).float().mean()) / 2
 
 
 def target_policy_data(n=600):

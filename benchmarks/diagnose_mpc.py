@@ -1,0 +1,254 @@
+"""
+Model error or planner error? Diagnose a trained agent on a MuJoCo task.
+
+1. A held-out episode: the agent plans with its learned model (MPC) for ``--steps`` steps from a fresh
+   reset; its return is the reference.
+2. Model error on that episode: from every ``--stride``-th state, the learned ensemble (expectation
+   propagation, as the planner uses it) predicts the next ``horizon`` states open-loop under the actions
+   that were executed. Reported per prediction step k: the RMSE of the predicted state, in units of each
+   dimension's standard deviation over the episode, and the error of the predicted k-step return
+   (the quantity CEM ranks candidates by) against the real one.
+3. Planner error: the same CEM (population, elites, iterations, momentum, horizon, action-sequence search
+   with the PETS variance bound) plans with the *true simulator* (batched ``mujoco.rollout`` from the
+   env's exact state) for ``--true-steps`` steps from the same reset. If this return is far above the
+   learned-model MPC return, the model is what limits the agent; if it is not, the planner budget is.
+
+    python benchmarks/diagnose_mpc.py --model logs/.../HalfCheetah-v5.zip --env HalfCheetah-v5
+
+Adds one row to benchmarks/RESULTS.md (section "MPC diagnosis") unless ``--no-record``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import sys
+import time
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import torch as th
+from mujoco import rollout
+
+from sb3_poplin import POPLIN
+from sb3_poplin.planning import CEM
+from sb3_poplin.tasks import make_task
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from results_file import append_row
+
+
+def held_out_episode(model: POPLIN, env: gym.Env, steps: int, seed: int) -> dict[str, np.ndarray]:
+    """
+    :return: observations ``[T + 1, o]``, env-unit actions ``[T, a]`` and rewards ``[T]`` of an MPC episode
+    """
+    obs, _ = env.reset(seed=seed)
+    observations, actions, rewards = [obs], [], []
+    state = None
+    for t in range(steps):
+        action, state = model.predict(obs, state=state, episode_start=np.array([t == 0]), deterministic=True)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        observations.append(obs)
+        actions.append(action)
+        rewards.append(reward)
+        if terminated or truncated:
+            break
+    return {"obs": np.array(observations), "actions": np.array(actions), "rewards": np.array(rewards)}
+
+
+@th.no_grad()
+def model_error(model: POPLIN, episode: dict[str, np.ndarray], stride: int) -> dict[str, list[float]]:
+    """
+    Open-loop multi-step prediction error of the learned ensemble on a held-out episode.
+
+    :return: per prediction step k = 1..H: normalised state RMSE, mean absolute error of the predicted
+        k-step return, and the mean absolute real k-step return (for scale)
+    """
+    task = make_task(model.task_id)
+    dynamics = model.policy.dynamics
+    device = model.device
+    obs = th.as_tensor(episode["obs"], dtype=th.float32, device=device)
+    actions = th.as_tensor(episode["actions"], dtype=th.float32, device=device)
+    rewards = th.as_tensor(episode["rewards"], dtype=th.float32, device=device)
+    horizon = model.horizon
+    starts = th.arange(0, len(actions) - horizon + 1, stride, device=device)
+    scaled = model.policy.scale_action(actions) if hasattr(model.policy, "scale_action") else None
+    low = th.as_tensor(model.action_space.low, device=device)
+    high = th.as_tensor(model.action_space.high, device=device)
+    scaled = 2.0 * (actions - low) / (high - low) - 1.0 if scaled is None else scaled
+    state_std = obs.std(dim=0).clamp(min=1e-6)
+    states = obs[starts].unsqueeze(1)  # [N, 1, o]
+    predicted_return = th.zeros(len(starts), device=device)
+    real_return = th.zeros(len(starts), device=device)
+    rmse, return_error, return_scale = [], [], []
+    for k in range(horizon):
+        step_actions = actions[starts + k]
+        next_states, _ = dynamics.propagate(states, scaled[starts + k].unsqueeze(1), "expectation")
+        predicted_return += task.reward_fn(states[:, 0], step_actions, next_states[:, 0])
+        real_return += rewards[starts + k]
+        states = next_states
+        error = (states[:, 0] - obs[starts + k + 1]) / state_std
+        rmse.append(float(error.pow(2).mean().sqrt()))
+        return_error.append(float((predicted_return - real_return).abs().mean()))
+        return_scale.append(float(real_return.abs().mean()))
+    return {"state_rmse": rmse, "return_abs_error": return_error, "real_return_abs": return_scale}
+
+
+class TrueModelPlanner:
+    """
+    CEM over action sequences whose candidates are scored by rolling out the true MuJoCo simulator.
+
+    :param env: the (unwrapped-accessible) MuJoCo env
+    :param model: the trained agent (its CEM settings and task reward are used)
+    """
+
+    def __init__(self, env: gym.Env, model: POPLIN) -> None:
+        self.env = env.unwrapped
+        self.task = make_task(model.task_id)
+        self.horizon = model.horizon
+        self.cem = CEM(model.population_size, model.num_elites, model.cem_iterations, model.cem_alpha)
+        self.init_var = 0.25
+        self.frame_skip = self.env.frame_skip
+        self.low = np.asarray(model.action_space.low, dtype=np.float64)
+        self.high = np.asarray(model.action_space.high, dtype=np.float64)
+        self.action_dim = len(self.low)
+        self.mj_model = self.env.model
+        self.mj_data = mujoco.MjData(self.mj_model)
+        self.spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        self.generator = th.Generator().manual_seed(0)
+        self.mean = th.zeros(1, self.horizon * self.action_dim)
+        nq, nv = self.mj_model.nq, self.mj_model.nv
+        self.qpos = slice(1, 1 + nq)  # full-physics state: [time, qpos, qvel, ...]
+        self.qvel = slice(1 + nq, 1 + nq + nv)
+
+    def observation(self, state: np.ndarray) -> np.ndarray:
+        """Observation (x position kept) of full-physics states ``[..., nstate]``."""
+        return np.concatenate([state[..., self.qpos], state[..., self.qvel]], axis=-1)
+
+    def evaluate(self, initial_state: np.ndarray, z: th.Tensor) -> th.Tensor:
+        """Returns ``[1, N]`` of candidates ``z [1, N, H * a]`` (scaled actions) rolled out in MuJoCo."""
+        n = z.shape[1]
+        scaled = z[0].clamp(-1.0, 1.0).view(n, self.horizon, self.action_dim).double().numpy()
+        actions = self.low + (scaled + 1.0) * 0.5 * (self.high - self.low)  # [N, H, a] env units
+        control = np.repeat(actions, self.frame_skip, axis=1)  # each action held for frame_skip substeps
+        states, _ = rollout.rollout(self.mj_model, self.mj_data, np.tile(initial_state, (n, 1)), control)
+        states = states[:, self.frame_skip - 1 :: self.frame_skip]  # [N, H, nstate] after each env step
+        obs = np.concatenate([np.tile(self.observation(initial_state), (n, 1, 1)), self.observation(states)], axis=1)
+        obs_t = th.as_tensor(obs, dtype=th.float32)
+        act_t = th.as_tensor(actions, dtype=th.float32)
+        flat = self.task.reward_fn(
+            obs_t[:, :-1].reshape(-1, obs.shape[-1]),
+            act_t.reshape(-1, self.action_dim),
+            obs_t[:, 1:].reshape(-1, obs.shape[-1]),
+        )
+        return flat.view(n, self.horizon).sum(dim=1).unsqueeze(0)
+
+    def act(self) -> np.ndarray:
+        """Plan from the env's current exact state; return the first action in env units."""
+        state = np.empty(mujoco.mj_stateSize(self.mj_model, self.spec))
+        mujoco.mj_getState(self.mj_model, self.env.data, state, self.spec)
+        var = th.full_like(self.mean, self.init_var)
+
+        def constrain(mean: th.Tensor, var: th.Tensor) -> th.Tensor:
+            room = th.minimum(mean + 1.0, 1.0 - mean) / 2.0
+            return th.minimum(var, room.clamp(min=0.0) ** 2)
+
+        result = self.cem.optimize(lambda z: self.evaluate(state, z), self.mean, var, constrain, self.generator)
+        first = result.solution[0, : self.action_dim].clamp(-1.0, 1.0).double().numpy()
+        shifted = th.cat([result.solution[:, self.action_dim :], th.zeros(1, self.action_dim)], dim=1)
+        self.mean = shifted
+        return self.low + (first + 1.0) * 0.5 * (self.high - self.low)
+
+
+def true_model_episode(env: gym.Env, model: POPLIN, steps: int, seed: int) -> tuple[float, float]:
+    """:return: the return of ``steps`` steps planned with the true simulator, and seconds per step"""
+    planner = TrueModelPlanner(env, model)
+    env.reset(seed=seed)
+    total, start = 0.0, time.perf_counter()
+    for _ in range(steps):
+        _, reward, terminated, truncated, _ = env.step(planner.act())
+        total += float(reward)
+        if terminated or truncated:
+            break
+    return total, (time.perf_counter() - start) / steps
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", required=True, help="a saved POPLIN zip")
+    parser.add_argument("--env", required=True, help="gymnasium id of the MuJoCo task it was trained on")
+    parser.add_argument("--steps", type=int, default=1000, help="length of the held-out MPC episode")
+    parser.add_argument("--true-steps", type=int, default=1000, help="steps planned with the true simulator")
+    parser.add_argument("--stride", type=int, default=5, help="start every n-th state for the model error")
+    parser.add_argument("--seed", type=int, default=1000)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--label", default="", help="what the model is (for the RESULTS row)")
+    parser.add_argument("--no-record", action="store_true")
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    model = POPLIN.load(args.model, device="cpu")
+    env = gym.make(args.env, **make_task(args.env).env_kwargs)
+    start = time.perf_counter()
+    episode = held_out_episode(model, env, args.steps, args.seed)
+    mpc_time = (time.perf_counter() - start) / len(episode["actions"])
+    errors = model_error(model, episode, args.stride)
+    true_return, true_time = true_model_episode(env, model, args.true_steps, args.seed)
+    mpc_return = float(episode["rewards"][: args.true_steps].sum())
+    ks = sorted({0, 4, model.horizon - 1} & set(range(model.horizon)))
+    summary = {
+        "mpc_return": float(episode["rewards"].sum()),
+        "mpc_return_first_true_steps": mpc_return,
+        "true_model_return": true_return,
+        "state_rmse": {k + 1: errors["state_rmse"][k] for k in ks},
+        "return_abs_error": {k + 1: errors["return_abs_error"][k] for k in ks},
+        "real_return_abs": {k + 1: errors["real_return_abs"][k] for k in ks},
+        "seconds_per_step": {"learned": mpc_time, "true": true_time},
+    }
+    print(json.dumps(summary, indent=2))
+    if args.no_record:
+        return
+    budget = f"H {model.horizon}, pop {model.population_size}, elites {model.num_elites}, {model.cem_iterations} it"
+    h = model.horizon
+    command = (
+        f"`python benchmarks/diagnose_mpc.py --model {args.model} --env {args.env} --steps {args.steps} "
+        f"--true-steps {args.true_steps} --seed {args.seed}`"
+    )
+    row = [
+        str(datetime.date.today()),
+        platform.node(),
+        args.label or os.path.basename(args.model),
+        args.env,
+        budget,
+        f"{summary['mpc_return']:.1f} ({len(episode['actions'])} steps)",
+        f"{mpc_return:.1f}",
+        f"{true_return:.1f}",
+        f"{errors['state_rmse'][0]:.3f} / {errors['state_rmse'][h - 1]:.3f}",
+        f"{errors['return_abs_error'][h - 1]:.1f} / {errors['real_return_abs'][h - 1]:.1f}",
+        command,
+    ]
+    header = [
+        "date",
+        "machine",
+        "model",
+        "task",
+        "planner budget",
+        "learned-model MPC return",
+        "same, first true-steps",
+        "true-simulator MPC return (true-steps)",
+        "state RMSE (std units) k=1 / k=H",
+        "H-step return error / mean abs real H-step return",
+        "command",
+    ]
+    intro = (
+        "Model error or planner error (`benchmarks/diagnose_mpc.py`): a held-out MPC episode with the learned model, "
+        "the ensemble's open-loop prediction error along it, and the same CEM planning with the true simulator."
+    )
+    append_row("MPC diagnosis", intro, header, row)
+
+
+if __name__ == "__main__":
+    main()
