@@ -35,14 +35,33 @@ NOISES = ("sep", "uni")
 # the standard normal CDF at -2 and +2: bounds of the uniform draw for a normal truncated at 2 sigma
 _PHI_MINUS_2 = 0.5 * (1.0 + math.erf(-2.0 / math.sqrt(2.0)))
 _PHI_PLUS_2 = 0.5 * (1.0 + math.erf(2.0 / math.sqrt(2.0)))
+# CPU sampling: 16-bit uniforms k in [-2^15, 2^15) -> erfinv argument 2 * u - 1 with u = Phi(-2) + (Phi(2) - Phi(-2))
+# * (k + 2^15 + 0.5) / 2^16, the midpoint of the k-th of 65,536 equally likely bins of the truncated normal
+_LEVELS = 65536
+_SCALE_16 = 2.0 * (_PHI_PLUS_2 - _PHI_MINUS_2) / _LEVELS
+_OFFSET_16 = 2.0 * _PHI_MINUS_2 - 1.0 + _SCALE_16 * (_LEVELS / 2 + 0.5)
 
 
 def truncated_normal(shape: tuple[int, ...], device: th.device, generator: th.Generator | None = None) -> th.Tensor:
-    """Standard normal samples truncated to [-2, 2] (exact, by inverting the CDF)."""
-    # one allocation, then in-place passes: u ~ U(Phi(-2), Phi(2)); x = sqrt(2) erfinv(2u - 1)
-    x = th.rand(shape, device=device, generator=generator)
-    x.mul_(2.0 * (_PHI_PLUS_2 - _PHI_MINUS_2)).add_(2.0 * _PHI_MINUS_2 - 1.0).erfinv_()
-    return x.mul_(math.sqrt(2.0)).clamp_(-2.0, 2.0)
+    """
+    Standard normal samples truncated to [-2, 2], by inverting the CDF.
+
+    On the CPU, where the random number generator is what POPLIN-P's large searches wait for (tens of millions
+    of samples per plan), each 64-bit draw gives four 16-bit uniforms: the samples are the truncated normal's
+    quantiles at the midpoints of 65,536 equally likely bins (a discretisation finer than 3e-4 in x everywhere,
+    with the law's mean and variance), for about half the cost of one 32-bit float uniform per sample. Elsewhere
+    one float uniform per sample.
+    """
+    n = math.prod(shape)
+    if th.device(device).type == "cpu":
+        bits = th.empty((n + 3) // 4, dtype=th.int64, device=device).random_(-(2**63), None, generator=generator)
+        x = th.empty(shape, device=device)
+        x.view(-1).copy_(bits.view(th.int16)[:n])  # signed 16-bit integers, uniform on [-2^15, 2^15)
+        x.mul_(_SCALE_16).add_(_OFFSET_16)
+    else:
+        x = th.rand(shape, device=device, generator=generator)
+        x.mul_(2.0 * (_PHI_PLUS_2 - _PHI_MINUS_2)).add_(2.0 * _PHI_MINUS_2 - 1.0)
+    return x.erfinv_().mul_(math.sqrt(2.0)).clamp_(-2.0, 2.0)
 
 
 class OptimizerResult(NamedTuple):

@@ -100,6 +100,12 @@ def test_truncated_normal_bounds_and_moments():
     phi2 = math.exp(-2.0) / math.sqrt(2 * math.pi)
     z = math.erf(2 / math.sqrt(2))
     assert x.var().item() == pytest.approx(1 - 4 * phi2 / z, abs=0.01)
+    # the CDF against the exact truncated normal CDF (Kolmogorov-Smirnov distance, 200k samples: ~0.003)
+    points = th.linspace(-1.95, 1.95, 79, dtype=th.float64)
+    exact = (th.special.ndtr(points) - th.special.ndtr(th.tensor(-2.0))) / z
+    empirical = (x.double().unsqueeze(0) <= points.unsqueeze(1)).double().mean(dim=1)
+    assert (empirical - exact).abs().max().item() < 0.006
+    assert truncated_normal((7, 3), th.device("cpu")).shape == (7, 3)
 
 
 def test_action_sequences_shift_cap_and_decode():
