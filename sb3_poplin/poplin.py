@@ -775,6 +775,7 @@ class POPLIN(OffPolicyAlgorithm):
         warm = saved.get("warm_start")
         self._warm_start = None if warm is None else warm.to(self.device)
         self._distill_data = {key: value.to(self.device) for key, value in saved.get("distill_data", {}).items()}
+        self._planned = [{key: value.to(self.device) for key, value in record.items()} for record in saved.get("planned", [])]
 
     def save(
         self,
@@ -784,14 +785,16 @@ class POPLIN(OffPolicyAlgorithm):
     ) -> None:
         """
         Save everything needed to plan and to keep training: settings, networks and normalisers,
-        optimizers, the control mode, the planner's random state and its warm start (not the
-        replay buffer: ``save_replay_buffer``).
+        optimizers, the control mode, the planner's random state, its warm start and the planned steps
+        not yet distilled (not the replay buffer: ``save_replay_buffer``).
         """
         warm = None if self._warm_start is None else self._warm_start.detach().cpu()
         self._saved_planner_state = {
             "generator": self._generator.get_state(),
             "warm_start": warm,
             "distill_data": {key: value.detach().cpu() for key, value in self._distill_data.items()},
+            # planned steps since the last distillation: a save in mid-episode must not drop them
+            "planned": [{key: value.detach().cpu() for key, value in record.items()} for record in self._planned],
         }
         try:
             super().save(path, exclude, include)

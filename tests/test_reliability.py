@@ -245,6 +245,7 @@ def test_save_load_restores_everything(tmp_path):
 
 def test_resume_equals_an_uninterrupted_run(tmp_path):
     """2N steps == N steps, save (agent + replay buffer), load, N more steps; N a whole number of episodes."""
+    first_steps = 400
 
     def fresh_env():
         return make_vec_env("Pendulum-v1", n_envs=1, seed=0)
@@ -254,14 +255,14 @@ def test_resume_equals_an_uninterrupted_run(tmp_path):
 
     env = fresh_env()
     first = POPLIN("poplin-a", env, seed=0, **TINY)
-    first.learn(400)
+    first.learn(first_steps)
     first.save(tmp_path / "agent")
     first.save_replay_buffer(tmp_path / "buffer")
     # The env object continues where it was (its RNG state). force_reset=False keeps the saved last observation
     # (the auto-reset one after step 400); SB3's default would reset the env once more and draw another start state.
     resumed = POPLIN.load(tmp_path / "agent", env=env, force_reset=False)
     resumed.load_replay_buffer(tmp_path / "buffer")
-    resumed.learn(400, reset_num_timesteps=False)
+    resumed.learn(800 - first_steps, reset_num_timesteps=False)
 
     assert resumed.num_timesteps == straight.num_timesteps == 800
     assert_same_parameters(parameters(straight), parameters(resumed))
@@ -306,5 +307,11 @@ def test_interrupted_training_leaves_a_usable_model(tmp_path, error):
     action, _ = model.predict(np.array([1.0, 0.0, 0.0], dtype=np.float32))
     assert np.isfinite(action).all()
     model.save(tmp_path / "agent")
+    # stopped in mid-episode: the planned steps since the last distillation are saved, not dropped
+    loaded = POPLIN.load(tmp_path / "agent")
+    assert len(model._planned) == len(loaded._planned) == 100  # steps 201-300, recorded when planned
+    for record, restored in zip(model._planned, loaded._planned, strict=True):
+        assert record.keys() == restored.keys()
+        assert all(th.equal(record[key], restored[key]) for key in record)
     model.learn(300, reset_num_timesteps=False)
     assert model.num_timesteps >= 600
