@@ -227,3 +227,35 @@ def test_compare_through_local_ray(tmp_path: Path) -> None:
     results, output = compare(tmp_path, "--seeds", "0", "--jobs", "2", "--ray-address", "local")
     assert output.count("[done]") == 2
     assert all(run["returncode"] == 0 and run["run_dir"] for run in results["runs"])
+
+
+def load_compare():
+    spec = importlib.util.spec_from_file_location("compare", REPO / "benchmarks" / "compare.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["compare"] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_compare_runs_poplin_variants_by_name(tmp_path: Path) -> None:
+    compare_module = load_compare()
+    algos = ["--algos", "pets", "poplin-a", "poplin", "sac", "--envs", "Pendulum-v1"]
+    options = compare_module.parse_args(
+        [*algos, "--seeds", "0", "-n", "400", "--log-folder", str(tmp_path), "--params", "pets:horizon:5"]
+    )
+    jobs = {job.algo: job for job in compare_module.plan_jobs(options)}
+    assert [job.zoo_algo for job in jobs.values()] == ["poplin", "poplin", "poplin", "sac"]
+    assert jobs["pets"].params == ["policy:'pets'", "horizon:5"]
+    assert jobs["poplin-a"].params == ["policy:'poplin-a'"]
+    assert jobs["pets"].command()[3:8] == ["train", "--algo", "poplin", "--env", "Pendulum-v1"]
+    # report columns: the variant that runs (poplin alone: the file's variant)
+    assert [job.column for job in jobs.values()] == ["pets", "poplin-a", "poplin-p", "sac"]
+    assert jobs["pets"].name != jobs["poplin-a"].name  # separate log files
+    assert compare_module.label_algo("PETS (MPC)") == "pets"
+    assert compare_module.label_algo("POPLIN-A (policy)") == "poplin-a"
+    assert compare_module.label_algo("SAC") == "sac"
+    # a run's args.yml only matches the job of its own variant
+    args = {"algo": "poplin", "env": "Pendulum-v1", "seed": 0, "n_timesteps": 400, "eval_freq": 40, "eval_episodes": 3}
+    args |= {"conf_file": jobs["pets"].conf_file, "hyperparams": {"policy": "pets", "horizon": 5}}
+    assert jobs["pets"].matches(args) and not jobs["poplin-a"].matches(args)
