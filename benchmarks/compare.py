@@ -8,6 +8,10 @@ instance on this machine with ``--jobs`` CPUs; ``auto`` or an address joins a ru
 optional ``ray`` extra). A run whose model and evaluations already exist with the same settings is reused,
 so an interrupted comparison resumes (``--force`` reruns).
 
+``--algos`` takes rl-zoo3 names and POPLIN's variants: ``poplin`` runs the variant of POPLIN's file
+(POPLIN-P); ``poplin-p``, ``poplin-a``, ``pets`` and ``rs`` run the zoo algorithm ``poplin`` with that
+``policy`` and the task's settings from the same file, each in its own column.
+
 The report (``--output``) has ``results.md``, a Markdown table of the final evaluation return (mean ± std
 over seeds) at the step every algorithm of the task reached, ``results.json`` with the numbers, and
 ``curves_<task>.png``, one learning-curve figure per task (``/`` in an id becomes ``-``). POPLIN-A/P runs
