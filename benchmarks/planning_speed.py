@@ -64,7 +64,10 @@ def layer_flops(shapes: list[tuple[int, int]]) -> int:
 def plan_flops(model: POPLIN) -> float:
     """Analytic FLOPs of one single-env plan."""
     dynamics = model.policy.dynamics
-    model_row = layer_flops([(layer.weight.shape[1], layer.weight.shape[2]) for layer in [*dynamics.hidden, dynamics.output]])
+    # expectation propagation computes only the mean half of the output layer (no log-variance)
+    out_cols = dynamics.out_dim if model.propagation == "expectation" else 2 * dynamics.out_dim
+    shapes = [(layer.weight.shape[1], layer.weight.shape[2]) for layer in dynamics.hidden]
+    model_row = layer_flops([*shapes, (dynamics.output.weight.shape[1], out_cols)])
     rows = model.population_size * (dynamics.ensemble_size if model.propagation == "expectation" else model.num_particles)
     per_step = rows * model_row
     actor = model.policy.actor

@@ -42,7 +42,14 @@ _SCALE_16 = 2.0 * (_PHI_PLUS_2 - _PHI_MINUS_2) / _LEVELS
 _OFFSET_16 = 2.0 * _PHI_MINUS_2 - 1.0 + _SCALE_16 * (_LEVELS / 2 + 0.5)
 
 
-def truncated_normal(shape: tuple[int, ...], device: th.device, generator: th.Generator | None = None) -> th.Tensor:
+def truncated_normal(
+    shape: tuple[int, ...],
+    device: th.device,
+    generator: th.Generator | None = None,
+    out: th.Tensor | None = None,
+    scratch: th.Tensor | None = None,
+    unit_variance: bool = True,
+) -> th.Tensor:
     """
     Standard normal samples truncated to [-2, 2], by inverting the CDF.
 
@@ -51,17 +58,45 @@ def truncated_normal(shape: tuple[int, ...], device: th.device, generator: th.Ge
     quantiles at the midpoints of 65,536 equally likely bins (a discretisation finer than 3e-4 in x everywhere,
     with the law's mean and variance), for about half the cost of one 32-bit float uniform per sample. Elsewhere
     one float uniform per sample.
+
+    :param shape: shape of the samples
+    :param device: device of the samples
+    :param generator: random generator
+    :param out: float32 tensor of ``shape`` to fill (a reused buffer: fresh tens-of-megabyte tensors cost more
+        in page faults than the sampling itself)
+    :param scratch: contiguous int64 CPU buffer of at least ``ceil(numel / 4)`` elements for the raw bits
+    :param unit_variance: False returns the samples divided by sqrt(2) (the ``erfinv`` values themselves), which
+        saves one pass when the caller scales them anyway
+    :return: the samples (``out`` if given)
     """
     n = math.prod(shape)
+    if out is None:
+        out = th.empty(shape, device=device)
+    elif tuple(out.shape) != tuple(shape) or not out.is_contiguous():
+        raise ValueError(f"out must be a contiguous tensor of shape {tuple(shape)}, got {tuple(out.shape)}")
+    flat = out.view(-1)
     if th.device(device).type == "cpu":
-        bits = th.empty((n + 3) // 4, dtype=th.int64, device=device).random_(-(2**63), None, generator=generator)
-        x = th.empty(shape, device=device)
-        x.view(-1).copy_(bits.view(th.int16)[:n])  # signed 16-bit integers, uniform on [-2^15, 2^15)
-        x.mul_(_SCALE_16).add_(_OFFSET_16)
+        n_words = (n + 3) // 4
+        if scratch is None or scratch.numel() < n_words:
+            scratch = th.empty(n_words, dtype=th.int64, device=device)
+        bits = scratch[:n_words].random_(-(2**63), None, generator=generator)
+        flat.copy_(bits.view(th.int16)[:n])  # signed 16-bit integers, uniform on [-2^15, 2^15)
+        offset = th.tensor(_OFFSET_16, dtype=flat.dtype, device=device)
+        th.add(offset, flat, alpha=_SCALE_16, out=flat)  # one pass: offset + scale * k
+        out.erfinv_()  # the outermost bin midpoints stay ~1e-5 inside the bounds: no clamp needed
     else:
-        x = th.rand(shape, device=device, generator=generator)
-        x.mul_(2.0 * (_PHI_PLUS_2 - _PHI_MINUS_2)).add_(2.0 * _PHI_MINUS_2 - 1.0)
-    return x.erfinv_().mul_(math.sqrt(2.0)).clamp_(-2.0, 2.0)
+        flat.uniform_(2.0 * _PHI_MINUS_2 - 1.0, 2.0 * _PHI_PLUS_2 - 1.0, generator=generator)
+        out.erfinv_().clamp_(-math.sqrt(2.0), math.sqrt(2.0))
+    return out.mul_(math.sqrt(2.0)) if unit_variance else out
+
+
+def _buffer(store: dict[str, th.Tensor], name: str, numel: int, dtype: th.dtype, device: th.device) -> th.Tensor:
+    """A flat buffer of ``numel`` elements from ``store``, reused while large enough (grown otherwise)."""
+    buffer = store.get(name)
+    if buffer is None or buffer.numel() < numel or buffer.dtype != dtype or buffer.device != th.device(device):
+        buffer = th.empty(numel, dtype=dtype, device=device)
+        store[name] = buffer
+    return buffer[:numel]
 
 
 class OptimizerResult(NamedTuple):
@@ -103,11 +138,17 @@ class CEM:
         self.iterations = iterations
         self.alpha = alpha
         self.sampling = sampling
+        self._buffers: dict[str, th.Tensor] = {}
 
     def _noise(self, shape: tuple[int, ...], device: th.device, generator: th.Generator | None) -> th.Tensor:
+        # one reused sample buffer per CEM: at POPLIN-P's sizes a fresh tensor per iteration costs as much in
+        # page faults as drawing the samples. The candidates never leave `optimize` (elites are copies).
+        # Truncated samples come back divided by sqrt(2) (one pass fewer); `optimize` scales its std to match.
+        out = _buffer(self._buffers, "samples", math.prod(shape), th.float32, device).view(shape)
         if self.sampling == "truncated":
-            return truncated_normal(shape, device, generator)
-        return th.randn(shape, device=device, generator=generator)
+            scratch = _buffer(self._buffers, "bits", (out.numel() + 3) // 4, th.int64, device)
+            return truncated_normal(shape, device, generator, out=out, scratch=scratch, unit_variance=False)
+        return out.normal_(generator=generator)
 
     def optimize(
         self,
@@ -130,13 +171,17 @@ class CEM:
         found = th.zeros(n_envs, dtype=th.bool, device=mean.device)
         for _ in range(self.iterations):
             std = constrain_var(mean, var).sqrt()
-            # z = mean + std * noise, in place on the fresh noise tensor: [n_envs, N, D]
+            if self.sampling == "truncated":  # _noise returns truncated-normal samples / sqrt(2)
+                std = std * math.sqrt(2.0)
+            # z = mean + std * noise, in place on the noise buffer: [n_envs, N, D]
             z = self._noise((n_envs, self.population_size, dim), mean.device, generator)
-            z.mul_(std.unsqueeze(1)).add_(mean.unsqueeze(1))
+            th.addcmul(mean.unsqueeze(1), z, std.unsqueeze(1), out=z)
             returns = evaluate(z)  # [n_envs, N]
             returns = th.where(th.isfinite(returns), returns, th.full_like(returns, -math.inf))
             top, idx = returns.topk(self.num_elites, dim=1)  # [n_envs, K]
-            elites = th.take_along_dim(z, idx.unsqueeze(-1), dim=1)  # [n_envs, K, D]
+            # [n_envs, K, D]: one row gather (take_along_dim would expand the index to K x D and wrap it)
+            rows = (idx + th.arange(n_envs, device=idx.device).unsqueeze(1) * self.population_size).view(-1)
+            elites = z.view(n_envs * self.population_size, dim).index_select(0, rows).view(n_envs, -1, dim)
             valid = th.isfinite(top)  # [n_envs, K]: -inf rows are not elites
             weight = valid.unsqueeze(-1).to(z.dtype)
             count = weight.sum(dim=1).clamp(min=1.0)  # [n_envs, 1]

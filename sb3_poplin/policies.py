@@ -131,13 +131,20 @@ class PolicyNetwork(nn.Module):
         :return: unclipped scaled actions ``[R, P, A]``
         """
         x = self.whiten(obs)  # [R, P, in]
-        rows, offset = noise.shape[0], 0
+        rows, particles, offset = noise.shape[0], x.shape[1], 0
         for i, ((d_in, d_out), weight, bias) in enumerate(zip(self.shapes, self.weights, self.biases, strict=True)):
-            w = weight + noise[:, offset : offset + d_in * d_out].view(rows, d_in, d_out)  # [R, in, out]
+            d_weight = noise[:, offset : offset + d_in * d_out].view(rows, d_in, d_out)  # [R, in, out]
             offset += d_in * d_out
-            b = bias + noise[:, offset : offset + d_out].view(rows, 1, d_out)  # [R, 1, out]
+            d_bias = noise[:, offset : offset + d_out].view(rows, 1, d_out)  # [R, 1, out]
             offset += d_out
-            x = th.baddbmm(b, x, w)  # [R, P, out]
+            if particles == 1:
+                # x (theta + omega) = x theta + x omega: one shared matmul, the noise read in place (a strided view
+                # of the search vector) instead of writing R perturbed weight matrices (POPLIN-P's expectation plans)
+                shared = th.addmm(bias, x.reshape(rows, d_in), weight).view(rows, 1, d_out)
+                x = th.baddbmm(shared.add_(d_bias), x, d_weight)  # [R, 1, out]
+            else:
+                # many particles per row: one perturbed matrix per row is cheaper than P extra shared products
+                x = th.baddbmm(bias + d_bias, x, weight + d_weight)  # [R, P, out]
             if i < len(self.shapes) - 1:
                 x = th.tanh(x)
         return x

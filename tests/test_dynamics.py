@@ -18,6 +18,22 @@ def test_ensemble_linear_equals_a_loop_over_members():
     assert th.allclose(layer(x), expected, atol=1e-6)
 
 
+@pytest.mark.parametrize("learned_reward", [False, True])
+def test_shared_input_mean_equals_the_full_forward(learned_reward: bool):
+    th.manual_seed(0)
+    model = ProbabilisticEnsemble(3, 2, ensemble_size=4, hidden_sizes=(16, 8), learned_reward=learned_reward)
+    with th.no_grad():
+        for layer in [*model.hidden, model.output]:
+            layer.bias.normal_()
+    x = th.randn(10, model.in_dim)
+    expected, _ = model(x.expand(4, -1, -1))
+    with th.inference_mode():
+        fast = model.shared_input_mean(x)
+    assert fast.shape == (4, 10, model.out_dim)
+    assert th.allclose(fast, expected, atol=1e-6)
+    assert th.allclose(model.shared_input_mean(x), expected, atol=1e-6)  # with gradients: the plain forward
+
+
 def test_default_weight_decays_match_the_paper():
     assert default_weight_decays(4) == [2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4]
     assert default_weight_decays(2) == [2.5e-5, 5e-5, 1e-4]

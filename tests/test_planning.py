@@ -108,6 +108,29 @@ def test_truncated_normal_bounds_and_moments():
     assert truncated_normal((7, 3), th.device("cpu")).shape == (7, 3)
 
 
+def test_truncated_normal_outermost_levels_and_cem_scaling():
+    # 4M draws hit both outermost of the 65,536 levels (miss probability e^-61): they stay inside [-2, 2]
+    x = truncated_normal((4_000_000,), th.device("cpu"), th.Generator().manual_seed(6))
+    assert 1.9998 < x.max().item() <= 2.0 and -2.0 <= x.min().item() < -1.9998
+    # CEM folds the sqrt(2) of the inverse CDF into its std: candidates are mean + std * truncated normal
+    seen = {}
+
+    def evaluate(z):
+        seen["z"] = z.clone()
+        return -z.pow(2).sum(dim=-1)
+
+    cem = CEM(population_size=20_000, num_elites=10, iterations=1, sampling="truncated")
+    mean, var = th.tensor([[1.0, -3.0]]), th.tensor([[0.25, 4.0]])
+    cem.optimize(evaluate, mean, var, identity_constraint, th.Generator().manual_seed(7))
+    z = seen["z"][0]  # [N, 2]
+    std = var[0].sqrt()
+    assert (z >= mean[0] - 2 * std - 1e-5).all() and (z <= mean[0] + 2 * std + 1e-5).all()
+    phi2 = math.exp(-2.0) / math.sqrt(2 * math.pi)
+    truncated_var = 1 - 4 * phi2 / math.erf(2 / math.sqrt(2))
+    assert th.allclose(z.mean(dim=0), mean[0], atol=0.03 * std.max().item())
+    assert th.allclose(z.var(dim=0), var[0] * truncated_var, rtol=0.04)
+
+
 def test_action_sequences_shift_cap_and_decode():
     space = ActionSequences(horizon=3, action_dim=2, init_var=0.25)
     assert space.dim == 6

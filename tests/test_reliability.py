@@ -120,16 +120,20 @@ def test_loading_a_zip_with_a_corrupted_member(saved):
 def nan_model(model, fraction):
     """Make the dynamics produce NaN for a fraction of the rows of every forward pass."""
     dynamics = model.policy.dynamics
-    forward = dynamics.forward
+    forward, shared_input_mean = dynamics.forward, dynamics.shared_input_mean
 
-    def broken(x):
-        mean, logvar = forward(x)
+    def with_nan_rows(mean):
         rows = int(mean.shape[1] * fraction)
         mean = mean.clone()
         mean[:, :rows] = float("nan")
-        return mean, logvar
+        return mean
 
-    dynamics.forward = broken
+    def broken(x):
+        mean, logvar = forward(x)
+        return with_nan_rows(mean), logvar
+
+    dynamics.forward = broken  # training, sampling propagations
+    dynamics.shared_input_mean = lambda x: with_nan_rows(shared_input_mean(x))  # expectation planning
 
 
 def test_diverged_candidates_rank_last():

@@ -33,11 +33,13 @@ def whitened_policy(seed=0, obs_dim=3, action_dim=2, arch=(8, 6)):
 
 
 # ---------------------------------------------------------------- policy network
-def test_perturbed_forward_equals_a_loop_of_functional_forwards():
+@pytest.mark.parametrize("particles", [1, 3])  # one particle: shared matmul + noise product; several: per-row weights
+def test_perturbed_forward_equals_a_loop_of_functional_forwards(particles: int):
     policy = whitened_policy()
-    rows, particles, w = 7, 3, policy.num_params
+    rows, w = 7, policy.num_params
     assert w == 3 * 8 + 8 + 8 * 6 + 6 + 6 * 2 + 2
-    obs, noise = th.randn(rows, particles, 3), 0.3 * th.randn(rows, w)
+    # the noise as the planner passes it: a strided view of one step's block of a longer search vector
+    obs, noise = th.randn(rows, particles, 3), 0.3 * th.randn(rows, 3 * w)[:, w : 2 * w]
     batched = policy.forward_perturbed(obs, noise)
     names = [name for name, _ in policy.named_parameters()]  # weights.0, weights.1, ..., biases.0, ...
     for r in range(rows):
