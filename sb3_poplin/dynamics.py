@@ -171,20 +171,41 @@ class ProbabilisticEnsemble(nn.Module):
         gradients: the same numbers as ``self(x.expand(E, -1, -1))[0]`` for less work. The first layer is one
         broadcast matmul (no copy of the input per member), hidden layers are plain batched matmuls with the
         bias added and SiLU applied in place, and the log-variance half of the output layer and its bounds are
-        skipped.
+        skipped. Under a bf16 autocast the whole forward runs in bf16 with bf16 copies of the parameters made
+        once per parameter update (autocast would cast every weight at every call and mix dtypes in the
+        element-wise ops).
 
         :param x: standardised input ``[B, in]``
-        :return: mean of the standardised target ``[E, B, out]``
+        :return: mean of the standardised target ``[E, B, out]`` (float32 for a float32 ``x``)
         """
         if th.is_grad_enabled():
             return self(x.expand(self.ensemble_size, -1, -1))[0]
-        h = th.matmul(x, self.hidden[0].weight)  # [B, in] @ [E, in, H] -> [E, B, H]
-        for i, layer in enumerate(self.hidden):
-            if i > 0:
-                h = th.bmm(h, layer.weight)
-            F.silu(h.add_(layer.bias), inplace=True)
-        out = self.out_dim
-        return th.baddbmm(self.output.bias[..., :out], h, self.output.weight[..., :out])
+        device = x.device.type
+        dtype = th.get_autocast_dtype(device) if th.is_autocast_enabled(device) else x.dtype
+        layers = self._parameters_in(dtype)
+        with th.autocast(device, enabled=False):
+            weight, bias = layers[0]
+            h = th.matmul(x.to(dtype), weight)  # [B, in] @ [E, in, H] -> [E, B, H]
+            for i, (weight, bias) in enumerate(layers[:-1]):
+                if i > 0:
+                    h = th.bmm(h, weight)
+                F.silu(h.add_(bias), inplace=True)
+            weight, bias = layers[-1]
+            out = self.out_dim
+            return th.baddbmm(bias[..., :out], h, weight[..., :out]).to(x.dtype)
+
+    def _parameters_in(self, dtype: th.dtype) -> list[tuple[th.Tensor, th.Tensor]]:
+        """(weight, bias) of every layer in ``dtype``: the parameters themselves, or cached copies."""
+        layers = [*self.hidden, self.output]
+        if dtype == self.output.weight.dtype:
+            return [(layer.weight, layer.bias) for layer in layers]
+        # a parameter update (optimizer step, load) bumps the version; a replaced tensor changes the pointer
+        key = (dtype, tuple((p._version, p.data_ptr()) for layer in layers for p in (layer.weight, layer.bias)))
+        cache = self.__dict__.get("_cast_cache")
+        if cache is None or cache[0] != key:
+            cache = (key, [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in layers])
+            self.__dict__["_cast_cache"] = cache
+        return cache[1]
 
     def _to_delta(self, normalised: th.Tensor) -> th.Tensor:
         return normalised * self.target_std + self.target_mean

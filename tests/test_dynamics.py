@@ -34,6 +34,29 @@ def test_shared_input_mean_equals_the_full_forward(learned_reward: bool):
     assert th.allclose(model.shared_input_mean(x), expected, atol=1e-6)  # with gradients: the plain forward
 
 
+def test_shared_input_mean_in_bf16_follows_parameter_updates():
+    th.manual_seed(0)
+    model = ProbabilisticEnsemble(3, 2, ensemble_size=4, hidden_sizes=(16, 8))
+    x = th.randn(10, model.in_dim)
+
+    def bf16_mean():
+        with th.inference_mode(), th.autocast("cpu", dtype=th.bfloat16):
+            return model.shared_input_mean(x)
+
+    def fp32_mean():
+        with th.inference_mode():
+            return model.shared_input_mean(x)
+
+    first = bf16_mean()
+    assert first.dtype == th.float32
+    assert th.allclose(first, fp32_mean(), atol=0.02, rtol=0.02)
+    with th.no_grad():  # an in-place update, as an optimizer step makes: the cached bf16 copies must follow
+        model.output.bias.add_(1.0)
+    second = bf16_mean()
+    assert th.allclose(second, fp32_mean(), atol=0.02, rtol=0.02)
+    assert (second - first).abs().min() > 0.9
+
+
 def test_default_weight_decays_match_the_paper():
     assert default_weight_decays(4) == [2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4]
     assert default_weight_decays(2) == [2.5e-5, 5e-5, 1e-4]
