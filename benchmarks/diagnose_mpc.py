@@ -24,7 +24,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import sys
 import time
 
@@ -39,7 +38,7 @@ from sb3_poplin.planning import CEM
 from sb3_poplin.tasks import make_task
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from results_file import append_row
+from results_file import append_row, describe_machine
 
 
 def held_out_episode(model: POPLIN, env: gym.Env, steps: int, seed: int) -> dict[str, np.ndarray]:
@@ -219,7 +218,7 @@ def main() -> None:
     )
     row = [
         str(datetime.date.today()),
-        platform.node(),
+        describe_machine(args.threads),
         args.label or os.path.basename(args.model),
         args.env,
         budget,

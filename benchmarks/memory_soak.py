@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
 import sys
 
 import torch as th
@@ -20,7 +19,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from sb3_poplin import POPLIN
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from results_file import append_row
+from results_file import append_row, describe_machine
 
 
 def rss_mib() -> float:
@@ -79,7 +78,7 @@ def main() -> None:
     growth = max(after_full) - min(after_full) if after_full else float("nan")
     print(f"RSS range once the buffer is full (iterations {full_at + 1}..{len(rss)}): {growth:.1f} MiB")
     command = "python " + " ".join(sys.argv)
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}"
+    machine = describe_machine()
     append_row(
         "Memory over training iterations (`benchmarks/memory_soak.py`)",
         "RSS after each model fit + distillation (Pendulum-v1, 200-step episodes). The replay buffer and the "

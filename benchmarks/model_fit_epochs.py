@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
 import sys
 import time
 
@@ -25,7 +24,7 @@ from sb3_poplin import POPLIN
 from sb3_poplin.tasks import make_task
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from results_file import append_row
+from results_file import append_row, describe_machine
 
 
 def episode(env: gym.Env, rng: np.random.Generator, seed: int, smooth: float) -> tuple[np.ndarray, np.ndarray]:
@@ -90,7 +89,7 @@ def main() -> None:
         f"`python benchmarks/model_fit_epochs.py --env {args.env} --epochs {' '.join(map(str, args.epochs))}`",
         f"{args.env}, {len(obs)} transitions, 5 x {args.arch} ensemble, batch 32",
         "; ".join(cells),
-        f"{platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}, 1 thread",
+        describe_machine(1),
     ]
     header = ["date", "command", "data and model", "epochs: RMSE k=1 / k=5 / k=H (fit time)", "machine"]
     intro = (

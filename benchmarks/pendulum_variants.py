@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
 import sys
 import time
 
@@ -23,7 +22,7 @@ from sb3_poplin import POPLIN
 from sb3_poplin.demo import CPU_SETTINGS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from results_file import append_row
+from results_file import append_row, describe_machine
 
 CONFIGS: dict[str, dict] = {
     "pets": dict(policy="pets"),
@@ -62,7 +61,7 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(1)
     command = "python " + " ".join(sys.argv)
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}, 1 thread"
+    machine = describe_machine(1)
     settings = ", ".join(f"{k}={v}" for k, v in CPU_SETTINGS.items())
     for name in args.configs:
         r = run(name, args.steps, args.seed, args.episodes)

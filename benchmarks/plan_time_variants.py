@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
 import sys
 import warnings
 
@@ -26,7 +25,7 @@ from sb3_poplin.demo import CPU_SETTINGS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from planning_speed import time_plans
-from results_file import append_row
+from results_file import append_row, describe_machine
 
 SETTINGS = {
     "paper": (
@@ -72,7 +71,7 @@ def main() -> None:
     pets = results["pets"]
     cells = ", ".join(f"{name} {t * 1000:.0f} ms ({t / pets:.2f}x)" for name, t in results.items())
     command = "python " + " ".join(sys.argv)
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}, {args.threads} thread(s)"
+    machine = describe_machine(args.threads)
     for name, t in results.items():
         print(f"{name:16s} {t * 1000:8.1f} ms  {t / pets:5.2f}x PETS")
     append_row(

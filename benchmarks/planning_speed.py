@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
 import resource
 import statistics
 import sys
@@ -29,7 +28,7 @@ from stable_baselines3 import SAC
 from sb3_poplin import POPLIN
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from results_file import append_row
+from results_file import append_row, describe_machine
 
 ENV_ID = "HalfCheetah-v5"
 PAPER = dict(horizon=30, population_size=500, num_elites=50, cem_iterations=5, ensemble_size=5)
@@ -170,7 +169,7 @@ def main() -> None:
     th.set_num_threads(args.threads)
     arch = (64, 64) if args.quick else (200, 200, 200, 200)
     command = "python " + " ".join(sys.argv)
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {th.__version__}, {args.threads} thread(s)"
+    machine = describe_machine(args.threads)
     peaks = {"float32": matmul_peak(th.float32), "bfloat16": matmul_peak(th.bfloat16)}
     print(f"matmul peak: fp32 {peaks['float32']:.1f} GFLOP/s, bf16 {peaks['bfloat16']:.1f} GFLOP/s ({machine})")
     section = "Planner speed at the paper setting (`benchmarks/planning_speed.py`)"

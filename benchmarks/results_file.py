@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import platform
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "RESULTS.md")
 
@@ -29,3 +30,28 @@ def append_row(section: str, intro: str, header: list[str], row: list[str], path
         lines.insert(end, line)
     with open(path, "w") as file:
         file.write("\n".join(lines) + "\n")
+
+
+def describe_machine(threads: int | None = None) -> str:
+    """
+    The machine column of a row: architecture, CPU model and whether it has AMX (bf16 matmuls are several times
+    faster with it, slower than fp32 without it), core count, torch version and thread count.
+
+    :param threads: torch threads of the run (omitted when None)
+    """
+    import torch as th
+
+    info: dict[str, str] = {}
+    try:
+        with open("/proc/cpuinfo") as file:
+            for line in file:
+                key, _, value = line.partition(":")
+                info.setdefault(key.strip(), value.strip())
+    except OSError:
+        pass
+    amx = "AMX" if "amx_bf16" in info.get("flags", "").split() else "no AMX"
+    parts = [platform.machine(), info.get("model name", platform.processor()), amx, f"{os.cpu_count()} cores"]
+    parts.append(f"torch {th.__version__}")
+    if threads is not None:
+        parts.append(f"{threads} thread(s)")
+    return ", ".join(parts)
