@@ -41,6 +41,27 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from results_file import append_row, describe_machine
 
 
+def with_pets_search(model: POPLIN, env_id: str) -> POPLIN:
+    """A PETS agent with ``model``'s planner budget and its learned dynamics (weights and normalisers)."""
+    pets = POPLIN(
+        "pets",
+        env_id,
+        horizon=model.horizon,
+        population_size=model.population_size,
+        num_elites=model.num_elites,
+        cem_iterations=model.cem_iterations,
+        cem_alpha=model.cem_alpha,
+        ensemble_size=model.ensemble_size,
+        dynamics_net_arch=model.dynamics_net_arch,
+        propagation=model.propagation,
+        learned_reward=model.learned_reward,
+        seed=0,
+        device="cpu",
+    )
+    pets.policy.dynamics.load_state_dict(model.policy.dynamics.state_dict())
+    return pets
+
+
 def held_out_episode(model: POPLIN, env: gym.Env, steps: int, seed: int) -> dict[str, np.ndarray]:
     """
     :return: observations ``[T + 1, o]``, env-unit actions ``[T, a]`` and rewards ``[T]`` of an MPC episode
@@ -186,10 +207,19 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1000)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--label", default="", help="what the model is (for the RESULTS row)")
+    parser.add_argument(
+        "--search",
+        choices=["own", "pets"],
+        default="own",
+        help="pets: plan the held-out episode with the same learned model but PETS's action-sequence search "
+        "(same CEM budget), to tell a POPLIN search-space problem from a model problem",
+    )
     parser.add_argument("--no-record", action="store_true")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     model = POPLIN.load(args.model, device="cpu")
+    if args.search == "pets" and model.variant != "pets":
+        model = with_pets_search(model, args.env)
     env = gym.make(args.env, **make_task(args.env).env_kwargs)
     start = time.perf_counter()
     episode = held_out_episode(model, env, args.steps, args.seed)
@@ -210,11 +240,14 @@ def main() -> None:
     print(json.dumps(summary, indent=2))
     if args.no_record:
         return
-    budget = f"H {model.horizon}, pop {model.population_size}, elites {model.num_elites}, {model.cem_iterations} it"
+    budget = (
+        f"{model.variant} search, H {model.horizon}, pop {model.population_size}, elites {model.num_elites}, "
+        f"{model.cem_iterations} it"
+    )
     h = model.horizon
     command = (
         f"`python benchmarks/diagnose_mpc.py --model {args.model} --env {args.env} --steps {args.steps} "
-        f"--true-steps {args.true_steps} --seed {args.seed}`"
+        f"--true-steps {args.true_steps} --seed {args.seed}" + (f" --search {args.search}`" if args.search != "own" else "`")
     )
     row = [
         str(datetime.date.today()),
