@@ -15,8 +15,9 @@ log-variance bounds act in standardised units.
 from __future__ import annotations
 
 import copy
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from itertools import pairwise
 from typing import NamedTuple
 
@@ -34,6 +35,32 @@ def default_weight_decays(num_hidden: int) -> list[float]:
     """
     hidden = [2.5e-5, 5e-5] + [7.5e-5] * max(num_hidden - 2, 0)
     return [*hidden[:num_hidden], 1e-4]
+
+
+@functools.cache
+def onednn_fused_linear(dtype: th.dtype) -> Callable[..., th.Tensor] | None:
+    """
+    oneDNN's CPU linear with a fused post-op (``torch.ops.mkldnn._linear_pointwise``, the op torch's own
+    compiler emits for linear + activation), or ``None`` where this torch build lacks it or it does not compute
+    ``silu(x @ w.T + b)`` and ``x @ w.T + b`` in ``dtype`` on a probe (checked once per process and dtype). The
+    planner's expectation forward uses it to add the bias and apply SiLU while the matmul's output is in cache.
+
+    :param dtype: float32 or bfloat16
+    """
+    if not th.backends.mkldnn.is_available():
+        return None
+    tol = 1e-5 if dtype == th.float32 else 5e-2
+    generator = th.Generator().manual_seed(0)
+    x, w, b = (th.randn(shape, generator=generator) for shape in ((7, 5), (3, 5), (3,)))
+    try:
+        linear = th.ops.mkldnn._linear_pointwise
+        fused = linear(x.to(dtype), w.to(dtype), b.to(dtype), "swish", [], "").float()
+        plain = linear(x.to(dtype), w.to(dtype), b.to(dtype), "none", [], "").float()
+    except (AttributeError, RuntimeError, NotImplementedError):
+        return None
+    expected = x @ w.T + b
+    ok = th.allclose(fused, F.silu(expected), atol=tol, rtol=tol) and th.allclose(plain, expected, atol=tol, rtol=tol)
+    return linear if ok else None
 
 
 class EnsembleLinear(nn.Module):
@@ -156,11 +183,19 @@ class ProbabilisticEnsemble(nn.Module):
     def forward(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """
         :param x: standardised input ``[E, B, in]``
-        :return: mean and bounded log-variance of the standardised target, each ``[E, B, out]``
+        :return: mean and bounded log-variance of the standardised target, each ``[E, B, out]`` (without
+            gradients on a CPU with oneDNN: each member's layers with the bias and SiLU fused, see
+            :func:`onednn_fused_linear`; float32 outputs under a bf16 autocast)
         """
-        for layer in self.hidden:
-            x = F.silu(layer(x))
-        mean, logvar = self.output(x).chunk(2, dim=-1)
+        fused = self._fused_dtype(x)
+        if fused is not None:
+            with th.autocast(x.device.type, enabled=False):
+                out = self._member_layers(x.to(fused), mean_only=False).to(th.float32 if fused == th.bfloat16 else x.dtype)
+        else:
+            for layer in self.hidden:
+                x = F.silu(layer(x))
+            out = self.output(x)
+        mean, logvar = out.chunk(2, dim=-1)
         logvar = self.max_logvar - F.softplus(self.max_logvar - logvar)
         logvar = self.min_logvar + F.softplus(logvar - self.min_logvar)
         return mean, logvar
@@ -168,12 +203,13 @@ class ProbabilisticEnsemble(nn.Module):
     def shared_input_mean(self, x: th.Tensor) -> th.Tensor:
         """
         The members' means for one input batch shared by all members (expectation propagation), without
-        gradients: the same numbers as ``self(x.expand(E, -1, -1))[0]`` for less work. The first layer is one
-        broadcast matmul (no copy of the input per member), hidden layers are plain batched matmuls with the
-        bias added and SiLU applied in place, and the log-variance half of the output layer and its bounds are
-        skipped. Under a bf16 autocast the whole forward runs in bf16 with bf16 copies of the parameters made
-        once per parameter update (autocast would cast every weight at every call and mix dtypes in the
-        element-wise ops).
+        gradients: the same numbers as ``self(x.expand(E, -1, -1))[0]`` for less work. The log-variance half of
+        the output layer and its bounds are skipped. On a CPU with oneDNN each member's layers run as oneDNN
+        linear primitives with the bias and SiLU fused into the matmul (:func:`onednn_fused_linear`); elsewhere
+        the first layer is one broadcast matmul (no copy of the input per member) and the hidden layers plain
+        batched matmuls with the bias added and SiLU applied in place. Under a bf16 autocast the whole forward
+        runs in bf16 with bf16 copies of the parameters made once per parameter update (autocast would cast
+        every weight at every call and mix dtypes in the element-wise ops).
 
         :param x: standardised input ``[B, in]``
         :return: mean of the standardised target ``[E, B, out]`` (float32 for a float32 ``x``)
@@ -182,8 +218,10 @@ class ProbabilisticEnsemble(nn.Module):
             return self(x.expand(self.ensemble_size, -1, -1))[0]
         device = x.device.type
         dtype = th.get_autocast_dtype(device) if th.is_autocast_enabled(device) else x.dtype
-        layers = self._parameters_in(dtype)
         with th.autocast(device, enabled=False):
+            if self._fused_dtype(x) is not None:
+                return self._member_layers(x.to(dtype), mean_only=True).to(x.dtype)
+            layers = self._parameters_in(dtype, "batched")
             weight, bias = layers[0]
             h = th.matmul(x.to(dtype), weight)  # [B, in] @ [E, in, H] -> [E, B, H]
             for i, (weight, bias) in enumerate(layers[:-1]):
@@ -191,21 +229,70 @@ class ProbabilisticEnsemble(nn.Module):
                     h = th.bmm(h, weight)
                 F.silu(h.add_(bias), inplace=True)
             weight, bias = layers[-1]
-            out = self.out_dim
-            return th.baddbmm(bias[..., :out], h, weight[..., :out]).to(x.dtype)
+            return th.baddbmm(bias, h, weight).to(x.dtype)
 
-    def _parameters_in(self, dtype: th.dtype) -> list[tuple[th.Tensor, th.Tensor]]:
-        """(weight, bias) of every layer in ``dtype``: the parameters themselves, or cached copies."""
+    def _fused_dtype(self, x: th.Tensor) -> th.dtype | None:
+        """The dtype the fused oneDNN forward runs ``x`` in (no gradients, CPU, oneDNN has it), else ``None``."""
+        if th.is_grad_enabled() or x.device.type != "cpu":
+            return None
+        dtype = th.get_autocast_dtype("cpu") if th.is_autocast_enabled("cpu") else x.dtype
+        return dtype if onednn_fused_linear(dtype) is not None else None
+
+    def _member_layers(self, x: th.Tensor, mean_only: bool) -> th.Tensor:
+        """
+        The network member by member with oneDNN's fused linear + bias + SiLU (no gradients, CPU).
+
+        :param x: standardised input ``[B, in]`` shared by all members, or ``[E, B, in]``
+        :param mean_only: compute only the mean half of the output layer
+        :return: the output layer ``[E, B, out]`` (mean only) or ``[E, B, 2 out]``, in ``x``'s dtype
+        """
+        linear = onednn_fused_linear(x.dtype)
+        assert linear is not None
+        layers = self._parameters_in(x.dtype, "members")
+        cols = self.out_dim if mean_only else 2 * self.out_dim
+        outputs = []
+        for member in range(self.ensemble_size):
+            h = x if x.dim() == 2 else x[member]
+            for weight, bias in layers[:-1]:
+                h = linear(h, weight[member], bias[member], "swish", [], "")  # [B, d_in] -> [B, d_out]
+            weight, bias = layers[-1]  # [E, 2 out, H]: the mean half is the first rows, contiguous
+            outputs.append(linear(h, weight[member, :cols], bias[member, :cols], "none", [], ""))
+        return th.stack(outputs)
+
+    def _parameters_in(self, dtype: th.dtype, layout: str) -> list[tuple[th.Tensor, th.Tensor]]:
+        """
+        (weight, bias) of every layer for the no-gradient forwards, in ``dtype``. Copies are cached until the
+        next parameter update.
+
+        :param dtype: float32 or bfloat16
+        :param layout: ``"batched"``: weight ``[E, in, out]``, bias ``[E, 1, out]``, only the mean half of the
+            output layer (the parameters themselves where nothing changes); ``"members"``: weight
+            ``[E, out, in]`` and bias ``[E, out]``, contiguous per member, as oneDNN's linear takes them
+        """
         layers = [*self.hidden, self.output]
-        if dtype == self.output.weight.dtype:
-            return [(layer.weight, layer.bias) for layer in layers]
+        last = len(layers) - 1
+
+        def mean_half(i: int, t: th.Tensor) -> th.Tensor:
+            return t[..., : self.out_dim] if i == last else t
+
+        if layout == "batched" and dtype == self.output.weight.dtype:
+            return [(mean_half(i, layer.weight), mean_half(i, layer.bias)) for i, layer in enumerate(layers)]
         # a parameter update (optimizer step, load) bumps the version; a replaced tensor changes the pointer
-        key = (dtype, tuple((p._version, p.data_ptr()) for layer in layers for p in (layer.weight, layer.bias)))
-        cache = self.__dict__.get("_cast_cache")
-        if cache is None or cache[0] != key:
-            cache = (key, [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in layers])
-            self.__dict__["_cast_cache"] = cache
-        return cache[1]
+        key = tuple((p._version, p.data_ptr()) for layer in layers for p in (layer.weight, layer.bias))
+        caches = self.__dict__.setdefault("_cast_cache", {})
+        cached = caches.get((dtype, layout))
+        if cached is None or cached[0] != key:
+            copies = []
+            for i, layer in enumerate(layers):
+                weight, bias = layer.weight.detach(), layer.bias.detach()
+                if layout == "members":
+                    weight, bias = weight.transpose(1, 2), bias.squeeze(1)
+                else:
+                    weight, bias = mean_half(i, weight), mean_half(i, bias)
+                copies.append((weight.to(dtype).contiguous(), bias.to(dtype).contiguous()))
+            cached = (key, copies)
+            caches[(dtype, layout)] = cached
+        return cached[1]
 
     def _to_delta(self, normalised: th.Tensor) -> th.Tensor:
         return normalised * self.target_std + self.target_mean

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch as th
 
+from sb3_poplin import dynamics as dynamics_module
 from sb3_poplin.dynamics import EnsembleLinear, ProbabilisticEnsemble, default_weight_decays
 
 
@@ -55,6 +56,59 @@ def test_shared_input_mean_in_bf16_follows_parameter_updates():
     second = bf16_mean()
     assert th.allclose(second, fp32_mean(), atol=0.02, rtol=0.02)
     assert (second - first).abs().min() > 0.9
+
+
+FUSED = pytest.mark.skipif(
+    dynamics_module.onednn_fused_linear(th.float32) is None, reason="this torch build has no oneDNN fused linear"
+)
+
+
+def plain_and_fused(monkeypatch, model, compute):
+    """``compute()`` with the oneDNN fused forward, then with it switched off (the plain batched matmuls)."""
+    fused = compute()
+    monkeypatch.setattr(dynamics_module, "onednn_fused_linear", lambda dtype: None)
+    plain = compute()
+    monkeypatch.undo()
+    return fused, plain
+
+
+@FUSED
+@pytest.mark.parametrize("learned_reward", [False, True])
+def test_fused_forward_equals_the_plain_forward(monkeypatch, learned_reward: bool):
+    th.manual_seed(0)
+    model = ProbabilisticEnsemble(5, 2, ensemble_size=3, hidden_sizes=(16, 24, 8), learned_reward=learned_reward)
+    with th.no_grad():
+        for layer in [*model.hidden, model.output]:
+            layer.bias.normal_()
+    shared, per_member = th.randn(11, model.in_dim), th.randn(3, 11, model.in_dim)
+    with th.inference_mode():
+        fused, plain = plain_and_fused(monkeypatch, model, lambda: model.shared_input_mean(shared))
+        assert fused.shape == plain.shape == (3, 11, model.out_dim)
+        assert th.allclose(fused, plain, atol=1e-5) and plain.std() > 0.1
+        fused, plain = plain_and_fused(monkeypatch, model, lambda: th.cat(model(per_member), dim=-1))
+        assert fused.shape == plain.shape == (3, 11, 2 * model.out_dim)
+        assert th.allclose(fused, plain, atol=1e-5)
+        with th.autocast("cpu", dtype=th.bfloat16):
+            fused, plain = plain_and_fused(monkeypatch, model, lambda: th.cat(model(per_member), dim=-1))
+        assert fused.dtype == th.float32
+        assert th.allclose(fused, plain.float(), atol=0.05, rtol=0.05)
+    # with gradients: always the plain forward, which trains
+    mean, _ = model(per_member)
+    assert mean.requires_grad
+
+
+@FUSED
+def test_fused_forward_follows_parameter_updates():
+    th.manual_seed(0)
+    model = ProbabilisticEnsemble(3, 2, ensemble_size=2, hidden_sizes=(8,))
+    x = th.randn(4, model.in_dim)
+    with th.inference_mode():
+        first = model.shared_input_mean(x)
+    with th.no_grad():
+        model.output.bias.add_(1.0)  # in place, as an optimizer step: the cached per-member copies must follow
+    with th.inference_mode():
+        second = model.shared_input_mean(x)
+    assert th.allclose(second - first, th.ones_like(first), atol=1e-5)  # standardised units: +1 on every output
 
 
 def test_default_weight_decays_match_the_paper():
