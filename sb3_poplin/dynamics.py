@@ -236,6 +236,8 @@ class ProbabilisticEnsemble(nn.Module):
         if th.is_grad_enabled() or x.device.type != "cpu":
             return None
         dtype = th.get_autocast_dtype("cpu") if th.is_autocast_enabled("cpu") else x.dtype
+        if dtype not in (th.float32, th.bfloat16):
+            return None
         return dtype if onednn_fused_linear(dtype) is not None else None
 
     def _member_layers(self, x: th.Tensor, mean_only: bool) -> th.Tensor:
