@@ -7,7 +7,9 @@ process, at the same thread count). Adds one row per run to benchmarks/RESULTS.m
 Paper setting: HalfCheetah-v5 sizes, population 500, horizon 30, 5 CEM iterations, 50 elites, a
 5-member 4x200 ensemble; expectation propagation and 20-particle TS-infinity; PETS, POPLIN-A (init)
 and POPLIN-P (sep, [32] policy); fp32 and bf16. FLOPs are counted analytically from the layer shapes
-(2 * d_in * d_out per row and layer; biases and activations not counted).
+(2 * d_in * d_out per row and layer; biases and activations not counted). The ratios (POPLIN-P/PETS,
+bf16 speed-ups) come from interleaved rounds, one plan per configuration in turn, so that the drift of a
+shared machine affects both sides of a ratio alike.
 """
 
 from __future__ import annotations
@@ -106,6 +108,32 @@ def make(variant: dict, propagation: str, dtype: str, arch: tuple[int, ...]) -> 
         )
 
 
+def interleaved_ratios(models: dict[tuple[str, str, str], tuple[POPLIN, np.ndarray]], rounds: int) -> str:
+    """
+    Plan-time ratios from ``rounds`` rounds of one ``predict`` per model in turn: the median over rounds of each
+    round's ratio, so that the machine's drift (other tenants on a shared host) affects both sides alike.
+    """
+    samples: dict[tuple[str, str, str], list[float]] = {key: [] for key in models}
+    for _ in range(rounds):
+        for key, (model, obs) in models.items():
+            start = time.perf_counter()
+            model.predict(obs)
+            samples[key].append(time.perf_counter() - start)
+
+    def ratio(num: tuple[str, str, str], den: tuple[str, str, str]) -> float:
+        return statistics.median(a / b for a, b in zip(samples[num], samples[den], strict=True))
+
+    pets, pets_bf16 = ("pets", "expectation", "float32"), ("pets", "expectation", "bfloat16")
+    tsinf, tsinf_bf16 = ("pets", "tsinf", "float32"), ("pets", "tsinf", "bfloat16")
+    return (
+        f"POPLIN-P/PETS {ratio(('poplin-p/sep', 'expectation', 'float32'), pets):.2f}x, "
+        f"POPLIN-A/PETS {ratio(('poplin-a/init', 'expectation', 'float32'), pets):.2f}x, "
+        f"bf16 speed-up PETS {ratio(pets, pets_bf16):.2f}x, TS-inf {ratio(tsinf, tsinf_bf16):.2f}x, "
+        f"POPLIN-P {ratio(('poplin-p/sep', 'expectation', 'float32'), ('poplin-p/sep', 'expectation', 'bfloat16')):.2f}x "
+        f"(medians of {rounds} interleaved rounds; PETS fp32 {statistics.median(samples[pets]) * 1000:.0f} ms)"
+    )
+
+
 def bf16_effect(arch: tuple[int, ...], plans: int) -> str:
     """How bf16 changes the executed action and the elite set, with a model fit on random data."""
     model = make(dict(policy="pets"), "expectation", "float32", arch)
@@ -170,13 +198,13 @@ def main() -> None:
     arch = (64, 64) if args.quick else (200, 200, 200, 200)
     command = "python " + " ".join(sys.argv)
     machine = describe_machine(args.threads)
-    peaks = {"float32": matmul_peak(th.float32), "bfloat16": matmul_peak(th.bfloat16)}
-    print(f"matmul peak: fp32 {peaks['float32']:.1f} GFLOP/s, bf16 {peaks['bfloat16']:.1f} GFLOP/s ({machine})")
+    print(f"matmul peak: fp32 {matmul_peak(th.float32):.1f} GFLOP/s, bf16 {matmul_peak(th.bfloat16):.1f} GFLOP/s ({machine})")
     section = "Planner speed at the paper setting (`benchmarks/planning_speed.py`)"
     intro = (
         "HalfCheetah-v5 sizes, population 500, horizon 30, 5 CEM iterations, 5 x (200, 200, 200, 200) ensemble; "
         "median time of a single-env `predict` after warm-up; FLOPs counted analytically; the fp32/bf16 matmul peak is "
-        "a 2048^3 matmul measured in the same process at the same thread count."
+        "the best of five 2048^3 matmuls measured in the same process at the same thread count (since 2026-12-01: "
+        "right before each row's timing)."
     )
     header = [
         "date",
@@ -191,19 +219,21 @@ def main() -> None:
         "peak RSS",
         "machine",
     ]
-    times = {}
+    models = {}
     for name, variant, propagation, dtype in RUNS:
         model = make(variant, propagation, dtype, arch)
         obs = model.observation_space.sample()
+        peak = matmul_peak(th.float32 if dtype == "float32" else th.bfloat16)  # right before: the machine drifts
         seconds = time_plans(model, obs, args.repeats)
         flops = plan_flops(model)
         rate = flops / seconds / 1e9
         peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        times[(name, propagation, dtype)] = seconds
-        fraction = rate / peaks[dtype]
+        key = (name, propagation, dtype)
+        models[key] = (model, obs)
+        fraction = rate / peak
         print(
             f"{name:14s} {propagation:11s} {dtype:8s} {seconds * 1000:8.1f} ms {flops / 1e9:7.1f} GFLOP "
-            f"{rate:6.1f} GFLOP/s {fraction:6.1%} of {dtype} peak, peak RSS {peak_rss:.0f} MiB",
+            f"{rate:6.1f} GFLOP/s {fraction:6.1%} of {dtype} peak {peak:.0f}, peak RSS {peak_rss:.0f} MiB",
             flush=True,
         )
         append_row(
@@ -219,19 +249,12 @@ def main() -> None:
                 f"{seconds * 1000:.0f} ms",
                 f"{flops / 1e9:.1f}",
                 f"{rate:.1f}",
-                f"{fraction:.0%} of {peaks[dtype]:.0f}",
+                f"{fraction:.0%} of {peak:.0f}",
                 f"{peak_rss:.0f} MiB",
                 machine,
             ],
         )
-        del model
-    pets = times[("pets", "expectation", "float32")]
-    ratios = (
-        f"POPLIN-P/PETS {times[('poplin-p/sep', 'expectation', 'float32')] / pets:.2f}x, "
-        f"POPLIN-A/PETS {times[('poplin-a/init', 'expectation', 'float32')] / pets:.2f}x, "
-        f"bf16 speed-up PETS {pets / times[('pets', 'expectation', 'bfloat16')]:.2f}x, "
-        f"TS-inf {times[('pets', 'tsinf', 'float32')] / times[('pets', 'tsinf', 'bfloat16')]:.2f}x"
-    )
+    ratios = interleaved_ratios(models, 2 * args.repeats)
     effect = bf16_effect(arch, plans=10)
     poplin_latency, sac_latency = policy_latency(200)
     latency = (
@@ -243,7 +266,8 @@ def main() -> None:
     print(latency)
     append_row(
         "Planner speed: ratios, bf16 effect and policy-control latency (`benchmarks/planning_speed.py`)",
-        "Same process as the rows above.",
+        "Same process as the rows above; since 2026-12-01 the ratios are medians over interleaved rounds (one plan "
+        "per configuration in turn), before that ratios of the rows' medians.",
         ["date", "command", "ratios", "bf16 effect", "policy-control latency", "machine"],
         [str(datetime.date.today()), f"`{command}`", ratios, effect, latency, machine],
     )

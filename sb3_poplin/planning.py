@@ -21,8 +21,10 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch as th
 
+from sb3_poplin import parallel
 from sb3_poplin.dynamics import ProbabilisticEnsemble, StepNoise
 from sb3_poplin.policies import PolicyNetwork
 from sb3_poplin.tasks import RewardFn, TerminationFn
@@ -41,6 +43,9 @@ _PHI_PLUS_2 = 0.5 * (1.0 + math.erf(2.0 / math.sqrt(2.0)))
 _LEVELS = 65536
 _QUANTILE_TABLES: dict[tuple[str, bool], th.Tensor] = {}
 _GATHER_CHUNK = 65536  # samples per table lookup: the int32 index chunk stays in cache
+# CEM candidates on the CPU are drawn in chunks of rows of about this many samples (1 MiB of noise, which stays in
+# cache until it is scaled into the candidates), chunk c from its own SFC64 stream seeded with base + c
+_CHUNK_SAMPLES = 1 << 18
 
 
 def _quantile_table(device: th.device, unit_variance: bool) -> th.Tensor:
@@ -92,18 +97,23 @@ def truncated_normal(
         if scratch is None or scratch.numel() < n_words:
             scratch = th.empty(n_words, dtype=th.int64, device=device)
         bits = scratch[:n_words].random_(-(2**63), None, generator=generator)
-        levels = bits.view(th.uint16)[:n]  # uniform on [0, 2^16)
-        table = _quantile_table(flat.device, unit_variance)
-        index = th.empty(min(n, _GATHER_CHUNK), dtype=th.int32, device=device)
-        for start in range(0, n, _GATHER_CHUNK):
-            stop = min(start + _GATHER_CHUNK, n)
-            chunk = index[: stop - start]
-            chunk.copy_(levels[start:stop])
-            th.index_select(table, 0, chunk, out=flat[start:stop])
-        return out
+        return _levels_to_samples(bits.view(th.uint16)[:n], out, unit_variance)
     flat.uniform_(2.0 * _PHI_MINUS_2 - 1.0, 2.0 * _PHI_PLUS_2 - 1.0, generator=generator)
     out.erfinv_().clamp_(-math.sqrt(2.0), math.sqrt(2.0))
     return out.mul_(math.sqrt(2.0)) if unit_variance else out
+
+
+def _levels_to_samples(levels: th.Tensor, out: th.Tensor, unit_variance: bool) -> th.Tensor:
+    """Fill the contiguous CPU tensor ``out`` with the truncated-normal quantiles of the 16-bit ``levels``."""
+    n, flat = levels.numel(), out.view(-1)
+    table = _quantile_table(flat.device, unit_variance)
+    index = th.empty(min(n, _GATHER_CHUNK), dtype=th.int32)
+    for start in range(0, n, _GATHER_CHUNK):
+        stop = min(start + _GATHER_CHUNK, n)
+        chunk = index[: stop - start]
+        chunk.copy_(levels[start:stop])
+        th.index_select(table, 0, chunk, out=flat[start:stop])
+    return out
 
 
 def _buffer(store: dict[str, th.Tensor], name: str, numel: int, dtype: th.dtype, device: th.device) -> th.Tensor:
@@ -156,15 +166,51 @@ class CEM:
         self.sampling = sampling
         self._buffers: dict[str, th.Tensor] = {}
 
-    def _noise(self, shape: tuple[int, ...], device: th.device, generator: th.Generator | None) -> th.Tensor:
-        # one reused sample buffer per CEM: at POPLIN-P's sizes a fresh tensor per iteration costs as much in
-        # page faults as drawing the samples. The candidates never leave `optimize` (elites are copies).
-        # Truncated samples come back divided by sqrt(2) (one pass fewer); `optimize` scales its std to match.
-        out = _buffer(self._buffers, "samples", math.prod(shape), th.float32, device).view(shape)
-        if self.sampling == "truncated":
-            scratch = _buffer(self._buffers, "bits", (out.numel() + 3) // 4, th.int64, device)
-            return truncated_normal(shape, device, generator, out=out, scratch=scratch, unit_variance=False)
-        return out.normal_(generator=generator)
+    def _sample(self, mean: th.Tensor, std: th.Tensor, generator: th.Generator | None) -> th.Tensor:
+        """
+        Candidates ``z = mean + std * noise``, ``[n_envs, N, D]``, in a buffer reused across iterations and plans
+        (at POPLIN-P's sizes a fresh tensor per iteration costs as much in page faults as drawing the samples; the
+        candidates never leave :meth:`optimize`: elites are copies). For truncated sampling the noise is drawn divided
+        by sqrt(2) (one pass fewer) and ``std`` comes scaled by sqrt(2) to match.
+
+        On the CPU the rows are drawn in chunks of about :data:`_CHUNK_SAMPLES` samples, chunk ``c`` from a
+        ``numpy.random.SFC64`` stream seeded with ``base + c`` (``base``: one draw from ``generator``): each chunk's
+        noise is scaled into ``z`` while it is in cache, random bits come at twice the rate of torch's CPU
+        generator, and the chunks are shared among the intra-op threads (:func:`sb3_poplin.parallel.run_shares`;
+        torch's CPU generator is serial) with the same samples for any thread count.
+        """
+        n_envs, dim = mean.shape
+        pop = self.population_size
+        z = _buffer(self._buffers, "candidates", n_envs * pop * dim, th.float32, mean.device).view(n_envs, pop, dim)
+        if mean.device.type != "cpu":
+            if self.sampling == "truncated":
+                truncated_normal(z.shape, z.device, generator, out=z, unit_variance=False)
+            else:
+                z.normal_(generator=generator)
+            return th.addcmul(mean.unsqueeze(1), z, std.unsqueeze(1), out=z)
+        rows = max(1, _CHUNK_SAMPLES // dim)
+        chunks = [(env, start, min(start + rows, pop)) for env in range(n_envs) for start in range(0, pop, rows)]
+        base = int(th.randint(0, 2**62, (1,), generator=generator).item())
+
+        def share(index: int, first: int, last: int) -> Callable[[], None]:
+            def run() -> None:
+                noise = _buffer(self._buffers, f"noise{index}", rows * dim, th.float32, z.device)
+                chunk_generator = th.Generator()
+                for c in range(first, last):
+                    env, start, stop = chunks[c]
+                    out = noise[: (stop - start) * dim].view(stop - start, dim)
+                    if self.sampling == "truncated":
+                        bits = th.from_numpy(np.random.SFC64(base + c).random_raw((out.numel() + 3) // 4))
+                        _levels_to_samples(bits.view(th.uint16)[: out.numel()], out, unit_variance=False)
+                    else:
+                        out.normal_(generator=chunk_generator.manual_seed(base + c))
+                    th.addcmul(mean[env], out, std[env], out=z[env, start:stop])
+
+            return run
+
+        ranges = parallel.split_range(len(chunks), th.get_num_threads())
+        parallel.run_shares([share(i, first, last) for i, (first, last) in enumerate(ranges)])
+        return z
 
     def optimize(
         self,
@@ -187,11 +233,9 @@ class CEM:
         found = th.zeros(n_envs, dtype=th.bool, device=mean.device)
         for _ in range(self.iterations):
             std = constrain_var(mean, var).sqrt()
-            if self.sampling == "truncated":  # _noise returns truncated-normal samples / sqrt(2)
+            if self.sampling == "truncated":  # _sample draws truncated-normal noise / sqrt(2)
                 std = std * math.sqrt(2.0)
-            # z = mean + std * noise, in place on the noise buffer: [n_envs, N, D]
-            z = self._noise((n_envs, self.population_size, dim), mean.device, generator)
-            th.addcmul(mean.unsqueeze(1), z, std.unsqueeze(1), out=z)
+            z = self._sample(mean, std, generator)  # [n_envs, N, D]
             returns = evaluate(z)  # [n_envs, N]
             returns = th.where(th.isfinite(returns), returns, th.full_like(returns, -math.inf))
             top, idx = returns.topk(self.num_elites, dim=1)  # [n_envs, K]

@@ -143,3 +143,57 @@ def test_action_sequences_shift_cap_and_decode():
     actions = space.actions(z, 0, states, None)
     assert actions.shape == (1, 1, 4, 2) and th.equal(actions[0, 0, 0], th.tensor([1.0, -0.5]))
     assert th.equal(space.executed_action(mean, th.zeros(1, 3), None), th.tensor([[0.1, 0.2]]))
+
+
+def test_cem_candidates_do_not_depend_on_the_thread_count():
+    # a wide search (POPLIN-P-like): 9 rows per chunk of 2^18 samples, 8 chunks shared among the threads
+    dim, pop = 29_000, 64
+    mean, var = th.linspace(-1.0, 1.0, dim).unsqueeze(0), th.full((1, dim), 0.09)
+    draws = {}
+    threads = th.get_num_threads()
+    try:
+        for count in (1, 2, 3):
+            th.set_num_threads(count)
+            seen: list[th.Tensor] = []
+
+            def evaluate(z, seen=seen):
+                seen.append(z.clone())
+                return -z[..., :3].pow(2).sum(dim=-1)
+
+            cem = CEM(pop, 8, iterations=2)
+            result = cem.optimize(evaluate, mean, var, identity_constraint, th.Generator().manual_seed(3))
+            draws[count] = (th.stack(seen), result.solution)
+    finally:
+        th.set_num_threads(threads)
+    for count in (2, 3):
+        assert th.equal(draws[count][0], draws[1][0]) and th.equal(draws[count][1], draws[1][1])
+    z = draws[1][0][0, 0]  # first iteration [N, D]
+    noise = (z - mean) / var.sqrt()  # truncated standard normal
+    # every chunk is its own stream: no two rows repeat, and rows of different chunks are uncorrelated
+    assert th.unique(noise[:, :100], dim=0).shape[0] == pop
+    corr = th.corrcoef(noise[::9])  # one row from each chunk
+    assert (corr - th.eye(corr.shape[0])).abs().max().item() < 0.05
+    phi2 = math.exp(-2.0) / math.sqrt(2 * math.pi)
+    assert noise.abs().max().item() <= 2.0 + 1e-4
+    assert noise.mean().item() == pytest.approx(0.0, abs=0.003)
+    assert noise.var().item() == pytest.approx(1 - 4 * phi2 / math.erf(2 / math.sqrt(2)), abs=0.005)
+
+
+def test_run_shares_runs_every_share_and_raises_their_errors():
+    from sb3_poplin import parallel
+
+    out = th.zeros(4)
+    with th.inference_mode():
+        tasks = [lambda i=i: out[i].fill_(th.is_inference_mode_enabled() + i) for i in range(4)]
+        parallel.run_shares(tasks)
+    assert out.tolist() == [1.0, 2.0, 3.0, 4.0]  # every share ran, in the caller's inference mode
+
+    def fails():
+        raise RuntimeError("share 1 failed")
+
+    threads = th.get_num_threads()
+    with pytest.raises(RuntimeError, match="share 1 failed"):
+        parallel.run_shares([lambda: None, fails])
+    assert th.get_num_threads() == threads  # the caller's intra-op thread count is restored
+    assert parallel.split_range(10, 3) == [(0, 3), (3, 7), (7, 10)]
+    assert parallel.split_range(2, 4) == [(0, 1), (1, 2)]
