@@ -14,6 +14,8 @@ Parts, at the paper setting's sizes:
    same time in both dtypes, which bounds the bf16 speed-up of the 200-wide layers.
 3. One expectation forward of the 5 x 4 x 200 ensemble on 500 rows at the given thread count: oneDNN's own
    threads splitting each product, against one single-threaded share of the members x rows per thread.
+4. CEM elite statistics of one POPLIN-P Sep iteration (50 elites x 23,220 dims): element-wise weighting and
+   reductions over the elites (the planner until 2026-12-01), against the planner's [1, K] x [K, D] products.
 """
 
 from __future__ import annotations
@@ -157,6 +159,32 @@ def forward_part(rounds: int, threads: int) -> str:
     return summary(samples, "oneDNN threads") + f"; {rates}"
 
 
+def elite_part(rounds: int) -> str:
+    dim, k = 30 * 774, 50
+    generator = th.Generator().manual_seed(0)
+    elites = th.randn(1, k, dim, generator=generator)
+    valid = th.ones(1, k, dtype=th.bool)
+    valid[0, -3:] = False  # a few non-finite returns
+
+    def elementwise() -> tuple[th.Tensor, th.Tensor]:
+        weight = valid.unsqueeze(-1).to(elites.dtype)
+        count = weight.sum(dim=1).clamp(min=1.0)
+        mean = (elites * weight).sum(dim=1) / count
+        return mean, ((elites - mean.unsqueeze(1)) ** 2 * weight).sum(dim=1) / count
+
+    deviation = th.empty_like(elites)
+
+    def products() -> tuple[th.Tensor, th.Tensor]:
+        weight = (valid / valid.sum(dim=1, keepdim=True).clamp(min=1)).to(elites.dtype).unsqueeze(1)
+        mean = th.bmm(weight, elites)
+        th.sub(elites, mean, out=deviation).square_()
+        return mean.squeeze(1), th.bmm(weight, deviation).squeeze(1)
+
+    for a, b in zip(elementwise(), products(), strict=True):
+        assert th.allclose(a, b, atol=1e-5)
+    return summary(interleave({"element-wise": elementwise, "products": products}, rounds, 10), "element-wise")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", type=int, default=2)
@@ -169,6 +197,7 @@ def main() -> None:
         ("CEM sampling, one POPLIN-P Sep iteration (11.6 M samples)", sampling_part(args.rounds)),
         ("one 500 x 200 x 200 layer, oneDNN linear", layer_part(args.rounds)),
         ("one expectation forward, 5 x 4 x 200 on 500 rows", forward_part(args.rounds, args.threads)),
+        ("CEM elite statistics, one POPLIN-P Sep iteration (50 x 23,220)", elite_part(args.rounds)),
     ]
     peak_note = f"(sgemm 2048^3 right after: {2 * 2048**3 / min(timed_matmul() for _ in range(5)) / 1e9:.0f} GFLOP/s)"
     for part, result in parts:

@@ -197,3 +197,32 @@ def test_run_shares_runs_every_share_and_raises_their_errors():
     assert th.get_num_threads() == threads  # the caller's intra-op thread count is restored
     assert parallel.split_range(10, 3) == [(0, 3), (3, 7), (7, 10)]
     assert parallel.split_range(2, 4) == [(0, 1), (1, 2)]
+
+
+def test_cem_variance_update_weights_only_finite_elites():
+    """With fewer finite candidates than elites, the update uses the finite ones only (biased variance)."""
+    pop, k, alpha = 40, 8, 0.25
+    seen = {}
+
+    def evaluate(z):
+        if "z" not in seen:
+            seen["z"] = z.clone()
+        ret = -(z**2).sum(-1)
+        finite = th.zeros_like(ret, dtype=th.bool)
+        finite[:, :5] = True  # five finite candidates, three of the eight elites are not
+        return th.where(finite, ret, th.full_like(ret, math.nan))
+
+    seen_means, variances = [], []
+
+    def spy(mean, var):  # called with the current distribution at every iteration
+        seen_means.append(mean.clone())
+        variances.append(var.clone())
+        return var
+
+    mean, var = th.tensor([[0.5, -0.2, 0.1]]), th.tensor([[0.2, 0.3, 0.4]])
+    CEM(pop, k, iterations=2, alpha=alpha).optimize(evaluate, mean, var, spy, th.Generator().manual_seed(5))
+    finite = seen["z"][0, :5].double()  # the first iteration's finite candidates
+    expected_mean = alpha * mean[0].double() + (1 - alpha) * finite.mean(0)
+    expected_var = alpha * var[0].double() + (1 - alpha) * finite.var(0, unbiased=False)
+    assert th.allclose(seen_means[1][0].double(), expected_mean, atol=1e-6)
+    assert th.allclose(variances[1][0].double(), expected_var, atol=1e-6)
