@@ -12,8 +12,9 @@ Parts, at the paper setting's sizes:
    chunked sampling (SFC64 streams per chunk of rows, scaled while in cache, chunks shared among the threads).
 2. One 500 x 200 x 200 layer as a oneDNN linear, with and without the fused SiLU, fp32 and bf16: the SiLU costs the
    same time in both dtypes, which bounds the bf16 speed-up of the 200-wide layers.
-3. One expectation forward of the 5 x 4 x 200 ensemble on 500 rows at the given thread count: oneDNN's own
-   threads splitting each product, against one single-threaded share of the members x rows per thread.
+3. One expectation forward of the 5 x 4 x 200 ensemble on 500 rows (one env) and on 1000 rows (two envs planned
+   in one batch) at the given thread count: oneDNN's own threads splitting each product, against one
+   single-threaded share of the members x rows per thread.
 4. CEM elite statistics of one POPLIN-P Sep iteration (50 elites x 23,220 dims): element-wise weighting and
    reductions over the elites (the planner until 2026-12-01), against the planner's [1, K] x [K, D] products.
 """
@@ -124,10 +125,10 @@ def layer_part(rounds: int) -> str:
     return f"{rates}; SiLU adds {silu['fp32']:.0f} us (fp32) / {silu['bf16']:.0f} us (bf16); {speedups}"
 
 
-def forward_part(rounds: int, threads: int) -> str:
+def forward_part(rounds: int, threads: int, rows: int = 500) -> str:
     th.manual_seed(0)
     model = ProbabilisticEnsemble(17, 6, 5, (200, 200, 200, 200))
-    x = th.randn(500, model.in_dim)
+    x = th.randn(rows, model.in_dim)
     linear = onednn_fused_linear(th.float32)
     if linear is None:
         return "oneDNN's fused linear is not available in this torch build"
@@ -154,7 +155,7 @@ def forward_part(rounds: int, threads: int) -> str:
     with th.inference_mode():
         samples = interleave({"oneDNN threads": lambda: model.shared_input_mean(x), "member shares": by_shares}, rounds, 20)
         assert th.allclose(model.shared_input_mean(x), by_shares(), atol=1e-5)
-    flops = 2 * model.ensemble_size * 500 * (model.in_dim * 200 + 3 * 200 * 200 + 200 * cols)
+    flops = 2 * model.ensemble_size * rows * (model.in_dim * 200 + 3 * 200 * 200 + 200 * cols)
     rates = ", ".join(f"{name} {flops / statistics.median(v) / 1e9:.0f} GFLOP/s" for name, v in samples.items())
     return summary(samples, "oneDNN threads") + f"; {rates}"
 
@@ -197,6 +198,7 @@ def main() -> None:
         ("CEM sampling, one POPLIN-P Sep iteration (11.6 M samples)", sampling_part(args.rounds)),
         ("one 500 x 200 x 200 layer, oneDNN linear", layer_part(args.rounds)),
         ("one expectation forward, 5 x 4 x 200 on 500 rows", forward_part(args.rounds, args.threads)),
+        ("one expectation forward, 5 x 4 x 200 on 1000 rows (two envs)", forward_part(args.rounds, args.threads, 1000)),
         ("CEM elite statistics, one POPLIN-P Sep iteration (50 x 23,220)", elite_part(args.rounds)),
     ]
     peak_note = f"(sgemm 2048^3 right after: {2 * 2048**3 / min(timed_matmul() for _ in range(5)) / 1e9:.0f} GFLOP/s)"
