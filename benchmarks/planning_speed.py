@@ -2,12 +2,13 @@
 Planner speed at the paper setting, against this machine's own matmul peak (measured in the same
 process, at the same thread count). Adds one row per run to benchmarks/RESULTS.md.
 
-    python benchmarks/planning_speed.py [--threads 1] [--repeats 5] [--quick]
+    python benchmarks/planning_speed.py [--threads 1] [--repeats 5] [--quick] [--envs 1]
 
 Paper setting: HalfCheetah-v5 sizes, population 500, horizon 30, 5 CEM iterations, 50 elites, a
 5-member 4x200 ensemble; expectation propagation and 20-particle TS-infinity; PETS, POPLIN-A (init)
 and POPLIN-P (sep, [32] policy); fp32 and bf16. FLOPs are counted analytically from the layer shapes
-(2 * d_in * d_out per row and layer; biases and activations not counted). The ratios (POPLIN-P/PETS,
+(2 * d_in * d_out per row and layer; biases and activations not counted). ``--envs N`` plans N envs in one batch
+(rows marked "N envs"; the FLOPs and each product's rows scale with N). The ratios (POPLIN-P/PETS,
 bf16 speed-ups) come from interleaved rounds, one plan per configuration in turn, so that the drift of a
 shared machine affects both sides of a ratio alike.
 """
@@ -26,6 +27,7 @@ import warnings
 import numpy as np
 import torch as th
 from stable_baselines3 import SAC
+from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_poplin import POPLIN
 
@@ -93,11 +95,11 @@ def time_plans(model: POPLIN, obs: np.ndarray, repeats: int) -> float:
     return statistics.median(times)
 
 
-def make(variant: dict, propagation: str, dtype: str, arch: tuple[int, ...]) -> POPLIN:
+def make(variant: dict, propagation: str, dtype: str, arch: tuple[int, ...], n_envs: int = 1) -> POPLIN:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return POPLIN(
-            env=ENV_ID,
+            env=ENV_ID if n_envs == 1 else make_vec_env(ENV_ID, n_envs=n_envs),
             seed=0,
             propagation=propagation,
             num_particles=20,
@@ -193,6 +195,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--quick", action="store_true", help="a 2x64 ensemble instead of 4x200 (smoke test)")
+    parser.add_argument(
+        "--envs", type=int, default=1, help="envs planned in one batch (a VecEnv of this many; FLOPs and rows scale with it)"
+    )
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     arch = (64, 64) if args.quick else (200, 200, 200, 200)
@@ -221,11 +226,15 @@ def main() -> None:
     ]
     models = {}
     for name, variant, propagation, dtype in RUNS:
-        model = make(variant, propagation, dtype, arch)
-        obs = model.observation_space.sample()
+        model = make(variant, propagation, dtype, arch, args.envs)
+        obs = (
+            np.stack([model.observation_space.sample() for _ in range(args.envs)])
+            if args.envs > 1
+            else model.observation_space.sample()
+        )
         peak = matmul_peak(th.float32 if dtype == "float32" else th.bfloat16)  # right before: the machine drifts
         seconds = time_plans(model, obs, args.repeats)
-        flops = plan_flops(model)
+        flops = plan_flops(model) * args.envs
         rate = flops / seconds / 1e9
         peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         key = (name, propagation, dtype)
@@ -243,7 +252,7 @@ def main() -> None:
             [
                 str(datetime.date.today()),
                 f"`{command}`",
-                name,
+                name if args.envs == 1 else f"{name}, {args.envs} envs",
                 propagation,
                 dtype,
                 f"{seconds * 1000:.0f} ms",
