@@ -217,7 +217,7 @@ class ProbabilisticEnsemble(nn.Module):
         if th.is_grad_enabled():
             return self(x.expand(self.ensemble_size, -1, -1))[0]
         device = x.device.type
-        dtype = th.get_autocast_dtype(device) if th.is_autocast_enabled(device) else x.dtype
+        dtype = self._compute_dtype(x)
         with th.autocast(device, enabled=False):
             if self._fused_dtype(x) is not None:
                 return self._member_layers(x.to(dtype), mean_only=True).to(x.dtype)
@@ -231,11 +231,17 @@ class ProbabilisticEnsemble(nn.Module):
             weight, bias = layers[-1]
             return th.baddbmm(bias, h, weight).to(x.dtype)
 
+    @staticmethod
+    def _compute_dtype(x: th.Tensor) -> th.dtype:
+        """The dtype a no-gradient forward of ``x`` runs in: the autocast dtype where autocast is on, else ``x``'s."""
+        device = x.device.type
+        return th.get_autocast_dtype(device) if th.is_autocast_enabled(device) else x.dtype
+
     def _fused_dtype(self, x: th.Tensor) -> th.dtype | None:
         """The dtype the fused oneDNN forward runs ``x`` in (no gradients, CPU, oneDNN has it), else ``None``."""
         if th.is_grad_enabled() or x.device.type != "cpu":
             return None
-        dtype = th.get_autocast_dtype("cpu") if th.is_autocast_enabled("cpu") else x.dtype
+        dtype = self._compute_dtype(x)
         if dtype not in (th.float32, th.bfloat16):
             return None
         return dtype if onednn_fused_linear(dtype) is not None else None

@@ -103,11 +103,16 @@ def truncated_normal(
     return out.mul_(math.sqrt(2.0)) if unit_variance else out
 
 
-def _levels_to_samples(levels: th.Tensor, out: th.Tensor, unit_variance: bool) -> th.Tensor:
-    """Fill the contiguous CPU tensor ``out`` with the truncated-normal quantiles of the 16-bit ``levels``."""
+def _levels_to_samples(levels: th.Tensor, out: th.Tensor, unit_variance: bool, index: th.Tensor | None = None) -> th.Tensor:
+    """
+    Fill the contiguous CPU tensor ``out`` with the truncated-normal quantiles of the 16-bit ``levels``.
+
+    :param index: int32 scratch of at least ``min(levels.numel(), _GATHER_CHUNK)`` elements (a reused buffer), or None
+    """
     n, flat = levels.numel(), out.view(-1)
     table = _quantile_table(flat.device, unit_variance)
-    index = th.empty(min(n, _GATHER_CHUNK), dtype=th.int32)
+    if index is None or index.numel() < min(n, _GATHER_CHUNK):
+        index = th.empty(min(n, _GATHER_CHUNK), dtype=th.int32)
     for start in range(0, n, _GATHER_CHUNK):
         stop = min(start + _GATHER_CHUNK, n)
         chunk = index[: stop - start]
@@ -195,13 +200,14 @@ class CEM:
         def share(index: int, first: int, last: int) -> Callable[[], None]:
             def run() -> None:
                 noise = _buffer(self._buffers, f"noise{index}", rows * dim, th.float32, z.device)
-                chunk_generator = th.Generator()
+                lookup = _buffer(self._buffers, f"index{index}", min(rows * dim, _GATHER_CHUNK), th.int32, z.device)
+                chunk_generator = th.Generator() if self.sampling != "truncated" else None
                 for c in range(first, last):
                     env, start, stop = chunks[c]
                     out = noise[: (stop - start) * dim].view(stop - start, dim)
-                    if self.sampling == "truncated":
+                    if chunk_generator is None:
                         bits = th.from_numpy(np.random.SFC64(base + c).random_raw((out.numel() + 3) // 4))
-                        _levels_to_samples(bits.view(th.uint16)[: out.numel()], out, unit_variance=False)
+                        _levels_to_samples(bits.view(th.uint16)[: out.numel()], out, False, lookup)
                     else:
                         out.normal_(generator=chunk_generator.manual_seed(base + c))
                     th.addcmul(mean[env], out, std[env], out=z[env, start:stop])
