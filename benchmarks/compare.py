@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
-import importlib.util
 import json
 import os
 import subprocess
@@ -41,21 +40,21 @@ from typing import Any
 import numpy as np
 import yaml
 
+from sb3_poplin.presets import HYPERPARAMS_DIR, PACKAGED_ALGOS
+from sb3_poplin.variants import POLICY_VARIANTS
+from sb3_poplin.variants import VARIANTS as VARIANT_TABLE
+
 # POPLIN variants run as the zoo algorithm "poplin" with ``policy`` set; "poplin" alone is the file's variant
-VARIANTS = ("poplin-p", "poplin-a", "pets", "rs")
-ALGOS = ("poplin", *VARIANTS, "sac", "td3", "ppo", "crossq", "tqc")
+VARIANTS = tuple(VARIANT_TABLE)
+ALGOS = ("poplin", *VARIANTS, *(algo for algo in PACKAGED_ALGOS if algo != "poplin"))
 BUDGETS = ("cpu", "paper")
-POLICY_VARIANTS = ("poplin-a", "poplin-p")
 # files of a run directory sent back by a Ray task (for clusters without a shared file system)
 RUN_FILE_SUFFIXES = (".npz", ".yml", ".txt", ".csv", ".zip")
 
 
 def hyperparams_dir() -> Path:
-    """The packaged ``sb3_poplin/hyperparams`` folder, found without importing the package (and torch)."""
-    spec = importlib.util.find_spec("sb3_poplin")
-    if spec is None or not spec.submodule_search_locations:
-        raise SystemExit("sb3_poplin is not installed: run `pip install -e .` in the repository first.")
-    return Path(next(iter(spec.submodule_search_locations))) / "hyperparams"
+    """The packaged ``sb3_poplin/hyperparams`` folder."""
+    return HYPERPARAMS_DIR
 
 
 def env_name(env: str) -> str:

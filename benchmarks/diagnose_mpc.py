@@ -34,88 +34,13 @@ import torch as th
 from mujoco import rollout
 
 from sb3_poplin import POPLIN
-from sb3_poplin.planning import CEM
-from sb3_poplin.tasks import make_task
+from sb3_poplin.analysis.model_error import model_error, mpc_episode
+from sb3_poplin.planning import CEM, ActionSequences
+from sb3_poplin.tasks import make_env, make_task
+from sb3_poplin.variants import VARIANTS, replanner
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from results_file import append_row, describe_machine
-
-
-def with_pets_search(model: POPLIN, env_id: str) -> POPLIN:
-    """A PETS agent with ``model``'s planner budget and its learned dynamics (weights and normalisers)."""
-    pets = POPLIN(
-        "pets",
-        env_id,
-        horizon=model.horizon,
-        population_size=model.population_size,
-        num_elites=model.num_elites,
-        cem_iterations=model.cem_iterations,
-        cem_alpha=model.cem_alpha,
-        ensemble_size=model.ensemble_size,
-        dynamics_net_arch=model.dynamics_net_arch,
-        propagation=model.propagation,
-        learned_reward=model.learned_reward,
-        seed=0,
-        device="cpu",
-    )
-    pets.policy.dynamics.load_state_dict(model.policy.dynamics.state_dict())
-    return pets
-
-
-def held_out_episode(model: POPLIN, env: gym.Env, steps: int, seed: int) -> dict[str, np.ndarray]:
-    """
-    :return: observations ``[T + 1, o]``, env-unit actions ``[T, a]`` and rewards ``[T]`` of an MPC episode
-    """
-    obs, _ = env.reset(seed=seed)
-    observations, actions, rewards = [obs], [], []
-    state = None
-    for t in range(steps):
-        action, state = model.predict(obs, state=state, episode_start=np.array([t == 0]), deterministic=True)
-        obs, reward, terminated, truncated, _ = env.step(action)
-        observations.append(obs)
-        actions.append(action)
-        rewards.append(reward)
-        if terminated or truncated:
-            break
-    return {"obs": np.array(observations), "actions": np.array(actions), "rewards": np.array(rewards)}
-
-
-@th.no_grad()
-def model_error(model: POPLIN, episode: dict[str, np.ndarray], stride: int) -> dict[str, list[float]]:
-    """
-    Open-loop multi-step prediction error of the learned ensemble on a held-out episode.
-
-    :return: per prediction step k = 1..H: normalised state RMSE, mean absolute error of the predicted
-        k-step return, and the mean absolute real k-step return (for scale)
-    """
-    task = make_task(model.task_id)
-    dynamics = model.policy.dynamics
-    device = model.device
-    obs = th.as_tensor(episode["obs"], dtype=th.float32, device=device)
-    actions = th.as_tensor(episode["actions"], dtype=th.float32, device=device)
-    rewards = th.as_tensor(episode["rewards"], dtype=th.float32, device=device)
-    horizon = model.horizon
-    starts = th.arange(0, len(actions) - horizon + 1, stride, device=device)
-    scaled = model.policy.scale_action(actions) if hasattr(model.policy, "scale_action") else None
-    low = th.as_tensor(model.action_space.low, device=device)
-    high = th.as_tensor(model.action_space.high, device=device)
-    scaled = 2.0 * (actions - low) / (high - low) - 1.0 if scaled is None else scaled
-    state_std = obs.std(dim=0).clamp(min=1e-6)
-    states = obs[starts].unsqueeze(1)  # [N, 1, o]
-    predicted_return = th.zeros(len(starts), device=device)
-    real_return = th.zeros(len(starts), device=device)
-    rmse, return_error, return_scale = [], [], []
-    for k in range(horizon):
-        step_actions = actions[starts + k]
-        next_states, _ = dynamics.propagate(states, scaled[starts + k].unsqueeze(1), "expectation")
-        predicted_return += task.reward_fn(states[:, 0], step_actions, next_states[:, 0])
-        real_return += rewards[starts + k]
-        states = next_states
-        error = (states[:, 0] - obs[starts + k + 1]) / state_std
-        rmse.append(float(error.pow(2).mean().sqrt()))
-        return_error.append(float((predicted_return - real_return).abs().mean()))
-        return_scale.append(float(real_return.abs().mean()))
-    return {"state_rmse": rmse, "return_abs_error": return_error, "real_return_abs": return_scale}
 
 
 class TrueModelPlanner:
@@ -131,16 +56,16 @@ class TrueModelPlanner:
         self.task = make_task(model.task_id)
         self.horizon = model.horizon
         self.cem = CEM(model.population_size, model.num_elites, model.cem_iterations, model.cem_alpha)
-        self.init_var = 0.25
+        self.to_env_units = model.planner.to_env_units  # scaled actions -> env units, from the agent's bounds
+        self.action_dim = int(model.action_space.shape[0])
+        # PETS's search space: its initial variance, its bound-aware variance cap and its shift
+        self.space = ActionSequences(self.horizon, self.action_dim, VARIANTS["pets"].init_var)
         self.frame_skip = self.env.frame_skip
-        self.low = np.asarray(model.action_space.low, dtype=np.float64)
-        self.high = np.asarray(model.action_space.high, dtype=np.float64)
-        self.action_dim = len(self.low)
         self.mj_model = self.env.model
         self.mj_data = mujoco.MjData(self.mj_model)
         self.spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
         self.generator = th.Generator().manual_seed(0)
-        self.mean = th.zeros(1, self.horizon * self.action_dim)
+        self.mean = self.space.initial_mean(1, th.device("cpu"))
         nq, nv = self.mj_model.nq, self.mj_model.nv
         self.qpos = slice(1, 1 + nq)  # full-physics state: [time, qpos, qvel, ...]
         self.qvel = slice(1 + nq, 1 + nq + nv)
@@ -152,8 +77,8 @@ class TrueModelPlanner:
     def evaluate(self, initial_state: np.ndarray, z: th.Tensor) -> th.Tensor:
         """Returns ``[1, N]`` of candidates ``z [1, N, H * a]`` (scaled actions) rolled out in MuJoCo."""
         n = z.shape[1]
-        scaled = z[0].clamp(-1.0, 1.0).view(n, self.horizon, self.action_dim).double().numpy()
-        actions = self.low + (scaled + 1.0) * 0.5 * (self.high - self.low)  # [N, H, a] env units
+        scaled = z[0].clamp(-1.0, 1.0).view(n, self.horizon, self.action_dim)
+        actions = self.to_env_units(scaled).double().numpy()  # [N, H, a] env units
         control = np.repeat(actions, self.frame_skip, axis=1)  # each action held for frame_skip substeps
         states, _ = rollout.rollout(self.mj_model, self.mj_data, np.tile(initial_state, (n, 1)), control)
         states = states[:, self.frame_skip - 1 :: self.frame_skip]  # [N, H, nstate] after each env step
@@ -171,17 +96,12 @@ class TrueModelPlanner:
         """Plan from the env's current exact state; return the first action in env units."""
         state = np.empty(mujoco.mj_stateSize(self.mj_model, self.spec))
         mujoco.mj_getState(self.mj_model, self.env.data, state, self.spec)
-        var = th.full_like(self.mean, self.init_var)
-
-        def constrain(mean: th.Tensor, var: th.Tensor) -> th.Tensor:
-            room = th.minimum(mean + 1.0, 1.0 - mean) / 2.0
-            return th.minimum(var, room.clamp(min=0.0) ** 2)
-
-        result = self.cem.optimize(lambda z: self.evaluate(state, z), self.mean, var, constrain, self.generator)
-        first = result.solution[0, : self.action_dim].clamp(-1.0, 1.0).double().numpy()
-        shifted = th.cat([result.solution[:, self.action_dim :], th.zeros(1, self.action_dim)], dim=1)
-        self.mean = shifted
-        return self.low + (first + 1.0) * 0.5 * (self.high - self.low)
+        space = self.space
+        evaluate = lambda z: self.evaluate(state, z)  # noqa: E731
+        result = self.cem.optimize(evaluate, self.mean, space.initial_var(self.mean), space.constrain_var, self.generator)
+        first = space.executed_action(result.solution, th.empty(0), None)
+        self.mean = space.shift(result.solution)
+        return self.to_env_units(first)[0].double().numpy()
 
 
 def true_model_episode(env: gym.Env, model: POPLIN, steps: int, seed: int) -> tuple[float, float]:
@@ -218,18 +138,17 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     model = POPLIN.load(args.model, device="cpu")
-    if args.search == "pets" and model.variant != "pets":
-        model = with_pets_search(model, args.env)
-    env = gym.make(args.env, **make_task(args.env).env_kwargs)
+    controller = model.mpc if args.search == "own" else replanner(model, "pets")
+    env = make_env(args.env)
     start = time.perf_counter()
-    episode = held_out_episode(model, env, args.steps, args.seed)
-    mpc_time = (time.perf_counter() - start) / len(episode["actions"])
+    episode = mpc_episode(controller, env, args.steps, args.seed)
+    mpc_time = (time.perf_counter() - start) / len(episode.actions)
     errors = model_error(model, episode, args.stride)
     true_return, true_time = true_model_episode(env, model, args.true_steps, args.seed)
-    mpc_return = float(episode["rewards"][: args.true_steps].sum())
+    mpc_return = float(episode.rewards[: args.true_steps].sum())
     ks = sorted({0, 4, model.horizon - 1} & set(range(model.horizon)))
     summary = {
-        "mpc_return": float(episode["rewards"].sum()),
+        "mpc_return": float(episode.rewards.sum()),
         "mpc_return_first_true_steps": mpc_return,
         "true_model_return": true_return,
         "state_rmse": {k + 1: errors["state_rmse"][k] for k in ks},
@@ -255,7 +174,7 @@ def main() -> None:
         args.label or os.path.basename(args.model),
         args.env,
         budget,
-        f"{summary['mpc_return']:.1f} ({len(episode['actions'])} steps)",
+        f"{summary['mpc_return']:.1f} ({len(episode.actions)} steps)",
         f"{mpc_return:.1f}",
         f"{true_return:.1f}",
         f"{errors['state_rmse'][0]:.3f} / {errors['state_rmse'][h - 1]:.3f}",

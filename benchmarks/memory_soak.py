@@ -17,6 +17,7 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_poplin import POPLIN
+from sb3_poplin.presets import poplin_settings
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from results_file import append_row, describe_machine
@@ -54,20 +55,15 @@ def main() -> None:
     parser.add_argument("--distill-window", type=int, default=None, help="default: the buffer size")
     args = parser.parse_args()
     th.set_num_threads(1)
-    model = POPLIN(
-        args.variant,
-        "Pendulum-v1",
-        seed=0,
+    # the CPU settings' model, a smaller planner: the soak measures memory over many iterations, not control
+    settings = poplin_settings("Pendulum-v1", horizon=10, population_size=50, num_elites=5, cem_iterations=2)
+    settings.update(
+        policy=args.variant,
         buffer_size=args.buffer_size,
         distill_window=args.distill_window or args.buffer_size,
         distillation=args.distillation if args.variant == "poplin-p" else None,
-        horizon=10,
-        population_size=50,
-        num_elites=5,
-        cem_iterations=2,
-        ensemble_size=5,
-        dynamics_net_arch=(64, 64, 64),
     )
+    model = POPLIN(env="Pendulum-v1", seed=0, **settings)
     callback = RssPerFit()
     model.learn(200 * (args.iterations + 1), callback=callback)
     rss = callback.rss[1:]  # after each fit

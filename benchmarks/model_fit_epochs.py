@@ -21,7 +21,7 @@ import numpy as np
 import torch as th
 
 from sb3_poplin import POPLIN
-from sb3_poplin.tasks import make_task
+from sb3_poplin.tasks import make_env
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from results_file import append_row, describe_machine
@@ -64,7 +64,7 @@ def main() -> None:
     parser.add_argument("--arch", nargs="+", type=int, default=[128, 128, 128])
     args = parser.parse_args()
     th.set_num_threads(1)
-    env = gym.make(args.env, **make_task(args.env).env_kwargs)
+    env = make_env(args.env)
     assert np.allclose(env.action_space.low, -1) and np.allclose(env.action_space.high, 1), "needs [-1, 1] actions"
     rng = np.random.default_rng(0)
     train = [episode(env, rng, seed, 0.8 if seed % 2 else 0.0) for seed in range(args.episodes)]

@@ -19,24 +19,20 @@ import torch as th
 from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_poplin import POPLIN
-from sb3_poplin.demo import CPU_SETTINGS
+from sb3_poplin.presets import poplin_settings
+from sb3_poplin.variants import NAMED_CONFIGURATIONS, configuration
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from results_file import append_row, describe_machine
 
-CONFIGS: dict[str, dict] = {
-    "pets": dict(policy="pets"),
-    "poplin-a/init": dict(policy="poplin-a", proposal="init"),
-    "poplin-a/replan": dict(policy="poplin-a", proposal="replan"),
-    "poplin-p/sep/avg": dict(policy="poplin-p", noise="sep", distillation="avg"),
-    "poplin-p/sep/bc": dict(policy="poplin-p", noise="sep", distillation="bc"),
-    "poplin-p/sep/gan": dict(policy="poplin-p", noise="sep", distillation="gan"),
-    "poplin-p/uni/avg": dict(policy="poplin-p", noise="uni", distillation="avg"),
-}
+DEFAULT_CONFIGS = ["pets", "poplin-a/init", "poplin-a/replan", "poplin-p/sep/avg", "poplin-p/sep/bc", "poplin-p/sep/gan"]
+DEFAULT_CONFIGS += ["poplin-p/uni/avg"]
+# the CPU planner settings of Pendulum-v1 (poplin_cpu.yml), the configuration's variant and options
+CPU_SETTINGS = {key: value for key, value in poplin_settings("Pendulum-v1").items() if key not in ("policy", "noise")}
 
 
 def run(name: str, steps: int, seed: int, episodes: int) -> dict:
-    model = POPLIN(env="Pendulum-v1", seed=seed, **CONFIGS[name], **CPU_SETTINGS)
+    model = POPLIN(env="Pendulum-v1", seed=seed, **{**CPU_SETTINGS, **configuration(name)})
     start = time.time()
     model.learn(steps)
     train_time = time.time() - start
@@ -54,7 +50,7 @@ def run(name: str, steps: int, seed: int, episodes: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    parser.add_argument("--configs", nargs="+", default=DEFAULT_CONFIGS, choices=list(NAMED_CONFIGURATIONS))
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--episodes", type=int, default=10)

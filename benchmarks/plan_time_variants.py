@@ -21,41 +21,27 @@ import warnings
 import torch as th
 
 from sb3_poplin import POPLIN
-from sb3_poplin.demo import CPU_SETTINGS
+from sb3_poplin.presets import poplin_settings
+from sb3_poplin.variants import configuration
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from planning_speed import time_plans
 from results_file import append_row, describe_machine
 
-SETTINGS = {
-    "paper": (
-        "HalfCheetah-v5",
-        dict(
-            horizon=30,
-            population_size=500,
-            num_elites=50,
-            cem_iterations=5,
-            ensemble_size=5,
-            dynamics_net_arch=(200, 200, 200, 200),
-            learned_reward=True,
-        ),
-    ),
-    "cpu": ("Pendulum-v1", dict(CPU_SETTINGS)),
+SETTINGS = {  # the packaged files' planner settings (poplin.yml / poplin_cpu.yml)
+    "paper": ("HalfCheetah-v5", poplin_settings("HalfCheetah-v5", "paper", learned_reward=True, buffer_size=1000)),
+    "cpu": ("Pendulum-v1", poplin_settings("Pendulum-v1")),
 }
-VARIANTS = {
-    "pets": dict(policy="pets"),
-    "poplin-a/init": dict(policy="poplin-a", proposal="init"),
-    "poplin-a/replan": dict(policy="poplin-a", proposal="replan"),
-    "poplin-p/sep": dict(policy="poplin-p", noise="sep"),
-    "poplin-p/uni": dict(policy="poplin-p", noise="uni"),
-}
+# the distillation does not change the plan: one configuration per search space
+VARIANTS = {name: configuration(name) for name in ("pets", "poplin-a/init", "poplin-a/replan")}
+VARIANTS.update({"poplin-p/sep": configuration("poplin-p/sep/avg"), "poplin-p/uni": configuration("poplin-p/uni/avg")})
 
 
 def plan_time(env_id: str, settings: dict, variant: dict, repeats: int) -> float:
     """Median seconds per single-env ``predict`` (an untrained model plans at the same cost)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        model = POPLIN(env=env_id, seed=0, **variant, **settings)
+        model = POPLIN(env=env_id, seed=0, **{**settings, **variant})
     return time_plans(model, model.observation_space.sample(), repeats)
 
 

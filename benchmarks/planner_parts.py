@@ -32,9 +32,9 @@ from collections.abc import Callable
 
 import torch as th
 
-from sb3_poplin import parallel
-from sb3_poplin.dynamics import ProbabilisticEnsemble, onednn_fused_linear
-from sb3_poplin.planning import CEM, _buffer, truncated_normal
+from sb3_poplin.dynamics import ProbabilisticEnsemble
+from sb3_poplin.kernels import ParameterCache, onednn_fused_linear
+from sb3_poplin.sampling import CandidateSampler, Workspace, run_shares, split_range, truncated_normal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from results_file import append_row, describe_machine
@@ -68,7 +68,7 @@ def summary(samples: dict[str, list[float]], baseline: str) -> str:
 def split_rows(members: int, rows: int, shares: int) -> list[list[tuple[int, int, int]]]:
     """The members x rows cut into ``shares`` contiguous member-major pieces: per share its (member, start, stop)."""
     plan = []
-    for lo, hi in parallel.split_range(members * rows, shares):
+    for lo, hi in split_range(members * rows, shares):
         pieces = []
         while lo < hi:
             member, start = divmod(lo, rows)
@@ -82,18 +82,18 @@ def split_rows(members: int, rows: int, shares: int) -> list[list[tuple[int, int
 def sampling_part(rounds: int) -> str:
     pop, dim = 500, 30 * 774
     mean, std = th.zeros(1, dim), th.full((1, dim), 0.1)
-    cem = CEM(pop, 50, 1)
+    sampler = CandidateSampler(pop)
     generator = th.Generator().manual_seed(0)
-    store: dict[str, th.Tensor] = {}
+    store = Workspace()
 
     def serial() -> th.Tensor:
-        out = _buffer(store, "samples", pop * dim, th.float32, mean.device).view(1, pop, dim)
-        bits = _buffer(store, "bits", (pop * dim + 3) // 4, th.int64, mean.device)
+        out = store.get("samples", pop * dim, th.float32, mean.device).view(1, pop, dim)
+        bits = store.get("bits", (pop * dim + 3) // 4, th.int64, mean.device)
         truncated_normal(out.shape, mean.device, generator, out=out, scratch=bits, unit_variance=False)
         return th.addcmul(mean.unsqueeze(1), out, std.unsqueeze(1), out=out)
 
     def chunked() -> th.Tensor:
-        return cem._sample(mean, std, generator)
+        return sampler.sample(mean, std, generator)
 
     samples = interleave({"serial torch generator": serial, "chunked SFC64": chunked}, rounds, 1)
     per_sample = statistics.median(samples["chunked SFC64"]) / (pop * dim) * 1e9
@@ -132,7 +132,7 @@ def forward_part(rounds: int, threads: int, rows: int = 500) -> str:
     linear = onednn_fused_linear(th.float32)
     if linear is None:
         return "oneDNN's fused linear is not available in this torch build"
-    layers = model._parameters_in(th.float32, "members")
+    layers = ParameterCache.layers(model, th.float32, "members")
     cols = model.out_dim
 
     def by_shares() -> th.Tensor:
@@ -149,7 +149,7 @@ def forward_part(rounds: int, threads: int, rows: int = 500) -> str:
 
             return run
 
-        parallel.run_shares([share(p) for p in split_rows(model.ensemble_size, x.shape[0], threads)])
+        run_shares([share(p) for p in split_rows(model.ensemble_size, x.shape[0], threads)])
         return out
 
     with th.inference_mode():

@@ -59,31 +59,6 @@ def matmul_peak(dtype: th.dtype, size: int = 2048, repeats: int = 5) -> float:
     return best
 
 
-def layer_flops(shapes: list[tuple[int, int]]) -> int:
-    """FLOPs of one row through layers of the given (d_in, d_out) shapes."""
-    return sum(2 * d_in * d_out for d_in, d_out in shapes)
-
-
-def plan_flops(model: POPLIN) -> float:
-    """Analytic FLOPs of one single-env plan."""
-    dynamics = model.policy.dynamics
-    # expectation propagation computes only the mean half of the output layer (no log-variance)
-    out_cols = dynamics.out_dim if model.propagation == "expectation" else 2 * dynamics.out_dim
-    shapes = [(layer.weight.shape[1], layer.weight.shape[2]) for layer in dynamics.hidden]
-    model_row = layer_flops([*shapes, (dynamics.output.weight.shape[1], out_cols)])
-    rows = model.population_size * (dynamics.ensemble_size if model.propagation == "expectation" else model.num_particles)
-    per_step = rows * model_row
-    actor = model.policy.actor
-    if actor is not None:
-        particles = 1 if model.propagation == "expectation" else model.num_particles
-        per_step += model.population_size * particles * layer_flops(actor.shapes)
-    flops = model.cem_iterations * model.horizon * per_step
-    if model.variant == "poplin-a" and model.proposal == "init":  # the open-loop proposal, once per plan
-        assert actor is not None
-        flops += model.horizon * (dynamics.ensemble_size * model_row + layer_flops(actor.shapes))
-    return float(flops)
-
-
 def time_plans(model: POPLIN, obs: np.ndarray, repeats: int) -> float:
     for _ in range(2):
         model.predict(obs)
@@ -234,7 +209,7 @@ def main() -> None:
         )
         peak = matmul_peak(th.float32 if dtype == "float32" else th.bfloat16)  # right before: the machine drifts
         seconds = time_plans(model, obs, args.repeats)
-        flops = plan_flops(model) * args.envs
+        flops = model.planner.flops(args.envs)
         rate = flops / seconds / 1e9
         peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         key = (name, propagation, dtype)

@@ -27,7 +27,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_poplin.tasks import has_task, make_task
+from sb3_poplin.tasks import task_env_kwargs
 
 
 class ControlModesEvalCallback(BaseCallback):
@@ -74,8 +74,7 @@ class ControlModesEvalCallback(BaseCallback):
             self.eval_env = env_id
         if isinstance(self.eval_env, str):
             env_id = self.eval_env
-            kwargs = make_task(env_id).env_kwargs if has_task(env_id) else {}
-            self.eval_env = make_vec_env(env_id, n_envs=1, env_kwargs=kwargs)
+            self.eval_env = make_vec_env(env_id, n_envs=1, env_kwargs=task_env_kwargs(env_id))
         if self.log_path is None and self.logger is not None and self.logger.get_dir():
             self.log_path = self.logger.get_dir()
         if self.log_path is not None:

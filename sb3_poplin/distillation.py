@@ -2,11 +2,11 @@
 Distillation: after each episode, train the policy network from what the planner did
 (Wang & Ba 2019, section 4.3).
 
-The algorithm records, for every *planned* real step (random warm-up steps are never recorded),
-the real state and the first block of the planner's solution (POPLIN-A: the action noise
-``mu_0``; POPLIN-P: the parameter perturbation ``mu_0``), and optionally the final elites' first
-blocks ("imagined" data). The search space turns a (state, block) pair into the action the planner
-meant, with the policy as it was while planning; the schemes below distill from those:
+:class:`Distiller` records, for every *planned* real step (random warm-up steps are never recorded),
+the real state, the executed action and the first block of the planner's solution (POPLIN-A: the
+action noise ``mu_0``; POPLIN-P: the parameter perturbation ``mu_0``), and optionally the final
+elites' first blocks ("imagined" data), turned into actions by the search space with the policy as
+it was while planning. After each model fit it runs one of the schemes below on what it recorded:
 
 - :func:`behaviour_cloning` (POPLIN-A and POPLIN-P "BC"): regress ``pi_theta(s)`` onto the planned
   actions, with a random 80/20 split for early stopping (the original trained on the first 80 % in
@@ -21,15 +21,15 @@ meant, with the policy as it was while planning; the schemes below distill from 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch as th
 import torch.nn.functional as F
 
-from sb3_poplin.planning import truncated_normal
-from sb3_poplin.policies import Discriminator, PolicyNetwork
-
-# variant -> accepted distillations, the first being the default
-DISTILLATIONS: dict[str, tuple[str, ...]] = {"poplin-a": ("bc",), "poplin-p": ("avg", "bc", "gan")}
+from sb3_poplin.common import check_state_keys
+from sb3_poplin.planning import PlanResult, PolicySearchSpace
+from sb3_poplin.policies import Discriminator, POPLINPolicy, PolicyNetwork
+from sb3_poplin.sampling import truncated_normal
 
 
 def _minibatches(n: int, batch_size: int, device: th.device, generator: th.Generator | None) -> list[th.Tensor]:
@@ -195,3 +195,154 @@ def saturated_fraction(policy: PolicyNetwork, states: th.Tensor) -> float:
         insensitive to its parameters (logged as ``train/policy_saturation``)
     """
     return float((policy(states).abs() > 1.0).float().mean())
+
+
+class Distiller:
+    """
+    What POPLIN distills from, and the distillation step: while acting, :meth:`record` keeps what each planned real
+    step says about the planner (the state, the executed action; for Avg the executed perturbation block; with
+    ``imagined`` the final elites' first actions or blocks, computed with the policy the planner used); after each
+    model fit, :meth:`distill` trains the policy network from it. Its :meth:`state_dict` is saved with the agent.
+
+    :param method: ``"avg"``, ``"bc"`` or ``"gan"``
+    :param search_space: the planner's search space (a policy search space)
+    :param networks: the agent's networks (``actor``, ``actor_optimizer``, and for GAN ``discriminator`` and
+        ``discriminator_optimizer``)
+    :param imagined: also distill the final elites' first steps
+    :param window: BC and GAN train on the most recent ``window`` planned steps; ``None``: on the steps since the
+        last distillation only. Avg always uses the steps since the last update.
+    :param avg_step_size: Avg's ``theta <- theta + avg_step_size * mean(omega)``
+    :param epochs: BC's maximum epochs, or GAN's epochs
+    :param batch_size: minibatch size of BC and GAN
+    :param noise_var: variance of GAN's generator noise (the planner's ``init_var``)
+    """
+
+    def __init__(
+        self,
+        method: str,
+        search_space: PolicySearchSpace,
+        networks: POPLINPolicy,
+        imagined: bool,
+        window: int | None,
+        avg_step_size: float,
+        epochs: int,
+        batch_size: int,
+        noise_var: float,
+    ) -> None:
+        assert networks.actor is not None, "distillation needs a policy network"
+        self.method = method
+        self.search_space = search_space
+        self.networks = networks
+        self.imagined = imagined
+        self.window = window
+        self.avg_step_size = avg_step_size
+        self.epochs = epochs
+        self.batch_size = batch_size
+        self.noise_var = noise_var
+        self.planned: list[dict[str, th.Tensor]] = []  # one record per planned step since the last distillation
+        self.data: dict[str, th.Tensor] = {}  # BC/GAN with a window: its most recent planned steps
+
+    @th.no_grad()
+    def record(self, obs: th.Tensor, plan: PlanResult) -> None:
+        """
+        Keep what distillation needs of a planned real step; a failed plan (``plan.fallback``) says nothing and is
+        dropped at :meth:`distill` (the mask stays on the device until then).
+
+        :param obs: the real observations ``[n_envs, o]``
+        :param plan: the plan that chose the executed actions
+        """
+        space = self.search_space
+        record = {"states": obs.clone(), "actions": plan.action, "keep": ~plan.fallback}
+        if self.method == "avg":
+            record["blocks"] = space.first_block(plan.solution)
+        if self.imagined:
+            elite_blocks = space.first_block(plan.elites)  # [n_envs, K, block]
+            if self.method == "avg":
+                record["elite_blocks"] = elite_blocks
+            else:
+                b, k = elite_blocks.shape[:2]
+                imagined = space.executed_action(elite_blocks.flatten(0, 1), obs.repeat_interleave(k, dim=0), None)
+                record["imagined"] = imagined.view(b, k, -1)  # [n_envs, K, A]
+        self.planned.append(record)
+
+    def _take_planned(self) -> dict[str, th.Tensor]:
+        """The recorded steps since the last call, failed plans dropped."""
+        new = {key: th.cat([record[key] for record in self.planned]) for key in self.planned[0]}
+        self.planned = []
+        keep = new.pop("keep")
+        return {key: value[keep] for key, value in new.items()}
+
+    def distill(self, generator: th.Generator | None) -> dict[str, float]:
+        """
+        Train the policy network from the planned steps (Avg: those since the last call; BC/GAN: the window).
+
+        :param generator: random generator for the splits, minibatches and GAN noise
+        :return: statistics to log (empty when nothing was planned since the last call)
+        """
+        if not self.planned:
+            return {}
+        actor = self.networks.actor
+        assert actor is not None
+        new = self._take_planned()
+        if self.method == "avg":  # perturbations are relative to the theta they were planned with
+            blocks = new["blocks"]
+            if "elite_blocks" in new:
+                blocks = th.cat([blocks, new["elite_blocks"].flatten(0, 1)])
+            stats = average_perturbation(actor, blocks, self.avg_step_size)
+            actor.update_whitening(new["states"])
+            return {**stats, "policy_saturation": saturated_fraction(actor, new["states"])}
+        data = new
+        if self.window is not None:
+            for key, value in new.items():
+                self.data[key] = (th.cat([self.data[key], value]) if key in self.data else value)[-self.window :]
+            data = self.data
+        states, targets = data["states"], data["actions"]
+        if "imagined" in data:
+            k = data["imagined"].shape[1]
+            states = th.cat([states, states.repeat_interleave(k, dim=0)])
+            targets = th.cat([targets, data["imagined"].flatten(0, 1)])
+        actor.update_whitening(new["states"])  # changes the parametrisation, not the function
+        with th.enable_grad():
+            if self.method == "gan":
+                assert self.networks.discriminator is not None
+                stats = gan_distillation(
+                    actor,
+                    self.networks.actor_optimizer,
+                    self.networks.discriminator,
+                    self.networks.discriminator_optimizer,
+                    states,
+                    targets,
+                    noise_var=self.noise_var,
+                    epochs=self.epochs,
+                    batch_size=self.batch_size,
+                    generator=generator,
+                )
+            else:
+                stats = behaviour_cloning(
+                    actor,
+                    self.networks.actor_optimizer,
+                    states,
+                    targets,
+                    epochs=self.epochs,
+                    batch_size=self.batch_size,
+                    generator=generator,
+                )
+        saturation = saturated_fraction(actor, new["states"])
+        return {**stats, "policy_samples": float(states.shape[0]), "policy_saturation": saturation}
+
+    def state_dict(self) -> dict[str, Any]:
+        """The planned steps not yet distilled and the window's data (CPU tensors): a save in mid-episode keeps them."""
+        return {
+            "planned": [{key: value.detach().cpu() for key, value in record.items()} for record in self.planned],
+            "data": {key: value.detach().cpu() for key, value in self.data.items()},
+        }
+
+    def load_state_dict(self, state: dict[str, Any], strict: bool = True) -> None:
+        """
+        :param state: what :meth:`state_dict` returned
+        :param strict: every key must be there
+        """
+        check_state_keys("Distiller", state, ("planned", "data"), strict)
+        device = self.networks.device
+        self.planned = [{key: value.to(device) for key, value in record.items()} for record in state.get("planned", [])]
+        self.data = {key: value.to(device) for key, value in state.get("data", {}).items()}

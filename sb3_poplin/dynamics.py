@@ -15,15 +15,16 @@ log-variance bounds act in standardised units.
 from __future__ import annotations
 
 import copy
-import functools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from itertools import pairwise
 from typing import NamedTuple
 
 import torch as th
 import torch.nn.functional as F
 from torch import nn
+
+from sb3_poplin import kernels
 
 PROPAGATIONS = ("expectation", "ts1", "tsinf", "ds")
 
@@ -35,32 +36,6 @@ def default_weight_decays(num_hidden: int) -> list[float]:
     """
     hidden = [2.5e-5, 5e-5] + [7.5e-5] * max(num_hidden - 2, 0)
     return [*hidden[:num_hidden], 1e-4]
-
-
-@functools.cache
-def onednn_fused_linear(dtype: th.dtype) -> Callable[..., th.Tensor] | None:
-    """
-    oneDNN's CPU linear with a fused post-op (``torch.ops.mkldnn._linear_pointwise``, the op torch's own
-    compiler emits for linear + activation), or ``None`` where this torch build lacks it or it does not compute
-    ``silu(x @ w.T + b)`` and ``x @ w.T + b`` in ``dtype`` on a probe (checked once per process and dtype). The
-    planner's expectation forward uses it to add the bias and apply SiLU while the matmul's output is in cache.
-
-    :param dtype: float32 or bfloat16
-    """
-    if not th.backends.mkldnn.is_available():
-        return None
-    tol = 1e-5 if dtype == th.float32 else 5e-2
-    generator = th.Generator().manual_seed(0)
-    x, w, b = (th.randn(shape, generator=generator) for shape in ((7, 5), (3, 5), (3,)))
-    try:
-        linear = th.ops.mkldnn._linear_pointwise
-        fused = linear(x.to(dtype), w.to(dtype), b.to(dtype), "swish", [], "").float()
-        plain = linear(x.to(dtype), w.to(dtype), b.to(dtype), "none", [], "").float()
-    except (AttributeError, RuntimeError, NotImplementedError):
-        return None
-    expected = x @ w.T + b
-    ok = th.allclose(fused, F.silu(expected), atol=tol, rtol=tol) and th.allclose(plain, expected, atol=tol, rtol=tol)
-    return linear if ok else None
 
 
 class EnsembleLinear(nn.Module):
@@ -150,6 +125,7 @@ class ProbabilisticEnsemble(nn.Module):
         self.action_dim = action_dim
         self.ensemble_size = ensemble_size
         self.learned_reward = learned_reward
+        self.hidden_sizes = list(hidden_sizes)
         kept = [i for i in range(obs_dim) if i not in set(input_exclude)]
         self.register_buffer("obs_index", th.tensor(kept, dtype=th.long), persistent=False)
         self.in_dim = len(kept) + action_dim
@@ -183,124 +159,42 @@ class ProbabilisticEnsemble(nn.Module):
     def forward(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """
         :param x: standardised input ``[E, B, in]``
-        :return: mean and bounded log-variance of the standardised target, each ``[E, B, out]`` (without
-            gradients on a CPU with oneDNN: each member's layers with the bias and SiLU fused, see
-            :func:`onednn_fused_linear`; float32 outputs under a bf16 autocast)
+        :return: mean and bounded log-variance of the standardised target, each ``[E, B, out]``
         """
-        fused = self._fused_dtype(x)
-        if fused is not None:
-            with th.autocast(x.device.type, enabled=False):
-                out = self._member_layers(x.to(fused), mean_only=False).to(th.float32 if fused == th.bfloat16 else x.dtype)
-        else:
-            for layer in self.hidden:
-                x = F.silu(layer(x))
-            out = self.output(x)
+        for layer in self.hidden:
+            x = F.silu(layer(x))
+        return self._gaussian_head(self.output(x))
+
+    def _gaussian_head(self, out: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """Mean and log-variance from the output layer, the log-variance softly bounded (PETS)."""
         mean, logvar = out.chunk(2, dim=-1)
         logvar = self.max_logvar - F.softplus(self.max_logvar - logvar)
         logvar = self.min_logvar + F.softplus(logvar - self.min_logvar)
         return mean, logvar
 
+    def predict(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """
+        :meth:`forward` for evaluation and planning: the same numbers, through the speed layer
+        (:mod:`sb3_poplin.kernels`) where it applies (no gradients, on a CPU). Float32 outputs under a bf16
+        autocast.
+
+        :param x: standardised input ``[E, B, in]``
+        """
+        out = kernels.fused_output(self, x)
+        return self(x) if out is None else self._gaussian_head(out)
+
     def shared_input_mean(self, x: th.Tensor) -> th.Tensor:
         """
-        The members' means for one input batch shared by all members (expectation propagation), without
-        gradients: the same numbers as ``self(x.expand(E, -1, -1))[0]`` for less work. The log-variance half of
-        the output layer and its bounds are skipped. On a CPU with oneDNN each member's layers run as oneDNN
-        linear primitives with the bias and SiLU fused into the matmul (:func:`onednn_fused_linear`); elsewhere
-        the first layer is one broadcast matmul (no copy of the input per member) and the hidden layers plain
-        batched matmuls with the bias added and SiLU applied in place. Under a bf16 autocast the whole forward
-        runs in bf16 with bf16 copies of the parameters made once per parameter update (autocast would cast
-        every weight at every call and mix dtypes in the element-wise ops).
+        The members' means for one input batch shared by all members (expectation propagation): the same numbers as
+        ``self(x.expand(E, -1, -1))[0]``, without gradients through the speed layer
+        (:func:`sb3_poplin.kernels.shared_input_mean`: no log-variance, no copy of the input per member).
 
         :param x: standardised input ``[B, in]``
         :return: mean of the standardised target ``[E, B, out]`` (float32 for a float32 ``x``)
         """
         if th.is_grad_enabled():
             return self(x.expand(self.ensemble_size, -1, -1))[0]
-        device = x.device.type
-        dtype = self._compute_dtype(x)
-        with th.autocast(device, enabled=False):
-            if self._fused_dtype(x) is not None:
-                return self._member_layers(x.to(dtype), mean_only=True).to(x.dtype)
-            layers = self._parameters_in(dtype, "batched")
-            weight, bias = layers[0]
-            h = th.matmul(x.to(dtype), weight)  # [B, in] @ [E, in, H] -> [E, B, H]
-            for i, (weight, bias) in enumerate(layers[:-1]):
-                if i > 0:
-                    h = th.bmm(h, weight)
-                F.silu(h.add_(bias), inplace=True)
-            weight, bias = layers[-1]
-            return th.baddbmm(bias, h, weight).to(x.dtype)
-
-    @staticmethod
-    def _compute_dtype(x: th.Tensor) -> th.dtype:
-        """The dtype a no-gradient forward of ``x`` runs in: the autocast dtype where autocast is on, else ``x``'s."""
-        device = x.device.type
-        return th.get_autocast_dtype(device) if th.is_autocast_enabled(device) else x.dtype
-
-    def _fused_dtype(self, x: th.Tensor) -> th.dtype | None:
-        """The dtype the fused oneDNN forward runs ``x`` in (no gradients, CPU, oneDNN has it), else ``None``."""
-        if th.is_grad_enabled() or x.device.type != "cpu":
-            return None
-        dtype = self._compute_dtype(x)
-        if dtype not in (th.float32, th.bfloat16):
-            return None
-        return dtype if onednn_fused_linear(dtype) is not None else None
-
-    def _member_layers(self, x: th.Tensor, mean_only: bool) -> th.Tensor:
-        """
-        The network member by member with oneDNN's fused linear + bias + SiLU (no gradients, CPU).
-
-        :param x: standardised input ``[B, in]`` shared by all members, or ``[E, B, in]``
-        :param mean_only: compute only the mean half of the output layer
-        :return: the output layer ``[E, B, out]`` (mean only) or ``[E, B, 2 out]``, in ``x``'s dtype
-        """
-        linear = onednn_fused_linear(x.dtype)
-        assert linear is not None
-        layers = self._parameters_in(x.dtype, "members")
-        cols = self.out_dim if mean_only else 2 * self.out_dim
-        outputs = []
-        for member in range(self.ensemble_size):
-            h = x if x.dim() == 2 else x[member]
-            for weight, bias in layers[:-1]:
-                h = linear(h, weight[member], bias[member], "swish", [], "")  # [B, d_in] -> [B, d_out]
-            weight, bias = layers[-1]  # [E, 2 out, H]: the mean half is the first rows, contiguous
-            outputs.append(linear(h, weight[member, :cols], bias[member, :cols], "none", [], ""))
-        return th.stack(outputs)
-
-    def _parameters_in(self, dtype: th.dtype, layout: str) -> list[tuple[th.Tensor, th.Tensor]]:
-        """
-        (weight, bias) of every layer for the no-gradient forwards, in ``dtype``. Copies are cached until the
-        next parameter update.
-
-        :param dtype: float32 or bfloat16
-        :param layout: ``"batched"``: weight ``[E, in, out]``, bias ``[E, 1, out]``, only the mean half of the
-            output layer (the parameters themselves where nothing changes); ``"members"``: weight
-            ``[E, out, in]`` and bias ``[E, out]``, contiguous per member, as oneDNN's linear takes them
-        """
-        layers = [*self.hidden, self.output]
-        last = len(layers) - 1
-
-        def mean_half(i: int, t: th.Tensor) -> th.Tensor:
-            return t[..., : self.out_dim] if i == last else t
-
-        if layout == "batched" and dtype == self.output.weight.dtype:
-            return [(mean_half(i, layer.weight), mean_half(i, layer.bias)) for i, layer in enumerate(layers)]
-        # a parameter update (optimizer step, load) bumps the version; a replaced tensor changes the pointer
-        key = tuple((p._version, p.data_ptr()) for layer in layers for p in (layer.weight, layer.bias))
-        caches = self.__dict__.setdefault("_cast_cache", {})
-        cached = caches.get((dtype, layout))
-        if cached is None or cached[0] != key:
-            copies = []
-            for i, layer in enumerate(layers):
-                weight, bias = layer.weight.detach(), layer.bias.detach()
-                if layout == "members":
-                    weight, bias = weight.transpose(1, 2), bias.squeeze(1)
-                else:
-                    weight, bias = mean_half(i, weight), mean_half(i, bias)
-                copies.append((weight.to(dtype).contiguous(), bias.to(dtype).contiguous()))
-            cached = (key, copies)
-            caches[(dtype, layout)] = cached
-        return cached[1]
+        return kernels.shared_input_mean(self, x)
 
     def _to_delta(self, normalised: th.Tensor) -> th.Tensor:
         return normalised * self.target_std + self.target_mean
@@ -371,7 +265,7 @@ class ProbabilisticEnsemble(nn.Module):
             def by_member(t: th.Tensor) -> th.Tensor:  # [N, P, d] -> [N, E, P/E, d] -> [E, N * P/E, d]
                 return t.view(n, e, per_member, t.shape[-1]).transpose(0, 1).reshape(e, n * per_member, t.shape[-1])
 
-            mean, logvar = self(by_member(x))
+            mean, logvar = self.predict(by_member(x))
             sample = mean + (0.5 * logvar).exp() * by_member(eps)  # [E, N * P/E, out]
             out = self._to_delta(sample.view(e, n, per_member, self.out_dim).transpose(0, 1).reshape(n, p, self.out_dim))
             if noise.order is not None:
@@ -405,11 +299,33 @@ class ProbabilisticEnsemble(nn.Module):
         total, count = 0.0, 0
         for start in range(0, inputs.shape[0], batch):
             x = inputs[start : start + batch]
-            mean, _ = self(x.unsqueeze(0).expand(self.ensemble_size, -1, -1))
+            mean, _ = self.predict(x.unsqueeze(0).expand(self.ensemble_size, -1, -1))
             err = (self._to_delta(mean) - targets[start : start + batch]) ** 2
             total += err.sum().item()
             count += err.numel()
         return total / max(count, 1)
+
+    def _epoch(
+        self, inputs: th.Tensor, targets: th.Tensor, order: th.Tensor, batch_size: int, optimizer: th.optim.Optimizer
+    ) -> float:
+        """One pass over the members' sample orders ``order [E, n]``: :return: the mean minibatch loss"""
+        losses = []
+        for start in range(0, order.shape[1], batch_size):
+            idx = order[:, start : start + batch_size]  # [E, b]
+            loss = self._loss(inputs[idx], targets[idx])
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            losses.append(loss.detach())
+        return th.stack(losses).mean().item()
+
+    @th.no_grad()
+    def _refit_normalisers(self, raw_in: th.Tensor, targets: th.Tensor) -> None:
+        """Input and target statistics refit on all data (a std below 1e-12 is treated as 1)."""
+        for data, mean, std in ((raw_in, self.input_mean, self.input_std), (targets, self.target_mean, self.target_std)):
+            spread = data.std(dim=0, unbiased=False)
+            mean.copy_(data.mean(dim=0))
+            std.copy_(th.where(spread < 1e-12, th.ones_like(spread), spread))
 
     def fit(
         self,
@@ -451,13 +367,7 @@ class ProbabilisticEnsemble(nn.Module):
             assert rewards is not None
             targets = th.cat([targets, rewards.reshape(-1, 1)], dim=-1)
         n = raw_in.shape[0]
-        # normalisers refit on all data (std below 1e-12 treated as 1)
-        std = raw_in.std(dim=0, unbiased=False)
-        self.input_mean.copy_(raw_in.mean(dim=0))
-        self.input_std.copy_(th.where(std < 1e-12, th.ones_like(std), std))
-        tstd = targets.std(dim=0, unbiased=False)
-        self.target_mean.copy_(targets.mean(dim=0))
-        self.target_std.copy_(th.where(tstd < 1e-12, th.ones_like(tstd), tstd))
+        self._refit_normalisers(raw_in, targets)
         inputs = (raw_in - self.input_mean) / self.input_std
         norm_targets = (targets - self.target_mean) / self.target_std
 
@@ -475,16 +385,7 @@ class ProbabilisticEnsemble(nn.Module):
         for _ in range(epochs):
             epochs_run += 1
             shuffle = th.rand(e, n_train, device=device, generator=generator).argsort(dim=1)
-            order = th.take_along_dim(boot, shuffle, dim=1)
-            losses = []
-            for start in range(0, n_train, batch_size):
-                idx = order[:, start : start + batch_size]  # [E, b]
-                loss = self._loss(inputs[idx], norm_targets[idx])
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-                losses.append(loss.detach())
-            epoch_loss = th.stack(losses).mean().item()
+            epoch_loss = self._epoch(inputs, norm_targets, th.take_along_dim(boot, shuffle, dim=1), batch_size, optimizer)
             if n_hold > 0:
                 mse = self.prediction_mse(inputs[hold_idx], targets[hold_idx])
                 if mse < best_mse - 1e-12:

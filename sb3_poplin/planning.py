@@ -18,116 +18,25 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from itertools import pairwise
 from collections.abc import Callable
 from typing import Any, NamedTuple
+
+import warnings
 
 import numpy as np
 import torch as th
 
-from sb3_poplin import parallel
+from sb3_poplin.common import check_choice, check_positive_int, check_state_keys
 from sb3_poplin.dynamics import ProbabilisticEnsemble, StepNoise
 from sb3_poplin.policies import PolicyNetwork
+from sb3_poplin.sampling import SAMPLINGS, CandidateSampler, Workspace
 from sb3_poplin.tasks import RewardFn, TerminationFn
 
 Evaluate = Callable[[th.Tensor], th.Tensor]
-SAMPLINGS = ("truncated", "clipped")
 PROPOSALS = ("init", "replan")
 NOISES = ("sep", "uni")
-
-# the standard normal CDF at -2 and +2: bounds of the uniform draw for a normal truncated at 2 sigma
-_PHI_MINUS_2 = 0.5 * (1.0 + math.erf(-2.0 / math.sqrt(2.0)))
-_PHI_PLUS_2 = 0.5 * (1.0 + math.erf(2.0 / math.sqrt(2.0)))
-# CPU sampling: a 16-bit uniform integer v picks the v-th of 65,536 equally likely bins of the truncated normal; the
-# sample is the law's quantile at the bin's midpoint, Phi^-1(Phi(-2) + (Phi(2) - Phi(-2)) (v + 0.5) / 2^16), computed
-# once in float64 (a table of 256 KiB per device and scale)
-_LEVELS = 65536
-_QUANTILE_TABLES: dict[tuple[str, bool], th.Tensor] = {}
-_GATHER_CHUNK = 65536  # samples per table lookup: the int32 index chunk stays in cache
-# CEM candidates on the CPU are drawn in chunks of rows of about this many samples (1 MiB of noise, which stays in
-# cache until it is scaled into the candidates), chunk c from its own SFC64 stream seeded with base + c
-_CHUNK_SAMPLES = 1 << 18
-
-
-def _quantile_table(device: th.device, unit_variance: bool) -> th.Tensor:
-    key = (str(device), unit_variance)
-    if key not in _QUANTILE_TABLES:
-        mid = (th.arange(_LEVELS, dtype=th.float64) + 0.5) / _LEVELS
-        quantiles = th.special.ndtri(_PHI_MINUS_2 + (_PHI_PLUS_2 - _PHI_MINUS_2) * mid)
-        if not unit_variance:
-            quantiles = quantiles / math.sqrt(2.0)
-        _QUANTILE_TABLES[key] = quantiles.to(device=device, dtype=th.float32)
-    return _QUANTILE_TABLES[key]
-
-
-def truncated_normal(
-    shape: tuple[int, ...],
-    device: th.device,
-    generator: th.Generator | None = None,
-    out: th.Tensor | None = None,
-    scratch: th.Tensor | None = None,
-    unit_variance: bool = True,
-) -> th.Tensor:
-    """
-    Standard normal samples truncated to [-2, 2], by inverting the CDF.
-
-    On the CPU, where the random number generator is what POPLIN-P's large searches wait for (tens of millions
-    of samples per plan), each 64-bit draw gives four 16-bit uniforms, and each picks one of 65,536 equally
-    likely bins: the sample is the truncated normal's quantile at the bin's midpoint, looked up in a table (a
-    discretisation finer than 3e-4 in x everywhere, with the law's mean and variance), for less than half the
-    cost of one 32-bit float uniform and an inverse CDF per sample. Elsewhere one float uniform per sample.
-
-    :param shape: shape of the samples
-    :param device: device of the samples
-    :param generator: random generator
-    :param out: float32 tensor of ``shape`` to fill (a reused buffer: fresh tens-of-megabyte tensors cost more
-        in page faults than the sampling itself)
-    :param scratch: contiguous int64 CPU buffer of at least ``ceil(numel / 4)`` elements for the raw bits
-    :param unit_variance: False returns the samples divided by sqrt(2), which saves one pass when the caller
-        scales them anyway
-    :return: the samples (``out`` if given)
-    """
-    n = math.prod(shape)
-    if out is None:
-        out = th.empty(shape, device=device)
-    elif tuple(out.shape) != tuple(shape) or not out.is_contiguous():
-        raise ValueError(f"out must be a contiguous tensor of shape {tuple(shape)}, got {tuple(out.shape)}")
-    flat = out.view(-1)
-    if th.device(device).type == "cpu":
-        n_words = (n + 3) // 4
-        if scratch is None or scratch.numel() < n_words:
-            scratch = th.empty(n_words, dtype=th.int64, device=device)
-        bits = scratch[:n_words].random_(-(2**63), None, generator=generator)
-        return _levels_to_samples(bits.view(th.uint16)[:n], out, unit_variance)
-    flat.uniform_(2.0 * _PHI_MINUS_2 - 1.0, 2.0 * _PHI_PLUS_2 - 1.0, generator=generator)
-    out.erfinv_().clamp_(-math.sqrt(2.0), math.sqrt(2.0))
-    return out.mul_(math.sqrt(2.0)) if unit_variance else out
-
-
-def _levels_to_samples(levels: th.Tensor, out: th.Tensor, unit_variance: bool, index: th.Tensor | None = None) -> th.Tensor:
-    """
-    Fill the contiguous CPU tensor ``out`` with the truncated-normal quantiles of the 16-bit ``levels``.
-
-    :param index: int32 scratch of at least ``min(levels.numel(), _GATHER_CHUNK)`` elements (a reused buffer), or None
-    """
-    n, flat = levels.numel(), out.view(-1)
-    table = _quantile_table(flat.device, unit_variance)
-    if index is None or index.numel() < min(n, _GATHER_CHUNK):
-        index = th.empty(min(n, _GATHER_CHUNK), dtype=th.int32)
-    for start in range(0, n, _GATHER_CHUNK):
-        stop = min(start + _GATHER_CHUNK, n)
-        chunk = index[: stop - start]
-        chunk.copy_(levels[start:stop])
-        th.index_select(table, 0, chunk, out=flat[start:stop])
-    return out
-
-
-def _buffer(store: dict[str, th.Tensor], name: str, numel: int, dtype: th.dtype, device: th.device) -> th.Tensor:
-    """A flat buffer of ``numel`` elements from ``store``, reused while large enough (grown otherwise)."""
-    buffer = store.get(name)
-    if buffer is None or buffer.numel() < numel or buffer.dtype != dtype or buffer.device != th.device(device):
-        buffer = th.empty(numel, dtype=dtype, device=device)
-        store[name] = buffer
-    return buffer[:numel]
+PLANNING_DTYPES = {"float32": th.float32, "bfloat16": th.bfloat16}
 
 
 class OptimizerResult(NamedTuple):
@@ -162,61 +71,14 @@ class CEM:
         alpha: float = 0.1,
         sampling: str = "truncated",
     ) -> None:
-        if sampling not in SAMPLINGS:
-            raise ValueError(f"Unknown CEM sampling {sampling!r}; accepted values: {list(SAMPLINGS)}")
+        check_choice("cem_sampling", sampling, SAMPLINGS)
         self.population_size = population_size
         self.num_elites = num_elites
         self.iterations = iterations
         self.alpha = alpha
         self.sampling = sampling
-        self._buffers: dict[str, th.Tensor] = {}
-
-    def _sample(self, mean: th.Tensor, std: th.Tensor, generator: th.Generator | None) -> th.Tensor:
-        """
-        Candidates ``z = mean + std * noise``, ``[n_envs, N, D]``, in a buffer reused across iterations and plans
-        (at POPLIN-P's sizes a fresh tensor per iteration costs as much in page faults as drawing the samples; the
-        candidates never leave :meth:`optimize`: elites are copies). For truncated sampling the noise is drawn divided
-        by sqrt(2) (one pass fewer) and ``std`` comes scaled by sqrt(2) to match.
-
-        On the CPU the rows are drawn in chunks of about :data:`_CHUNK_SAMPLES` samples, chunk ``c`` from a
-        ``numpy.random.SFC64`` stream seeded with ``base + c`` (``base``: one draw from ``generator``): each chunk's
-        noise is scaled into ``z`` while it is in cache, random bits come at twice the rate of torch's CPU
-        generator, and the chunks are shared among the intra-op threads (:func:`sb3_poplin.parallel.run_shares`;
-        torch's CPU generator is serial) with the same samples for any thread count.
-        """
-        n_envs, dim = mean.shape
-        pop = self.population_size
-        z = _buffer(self._buffers, "candidates", n_envs * pop * dim, th.float32, mean.device).view(n_envs, pop, dim)
-        if mean.device.type != "cpu":
-            if self.sampling == "truncated":
-                truncated_normal(z.shape, z.device, generator, out=z, unit_variance=False)
-            else:
-                z.normal_(generator=generator)
-            return th.addcmul(mean.unsqueeze(1), z, std.unsqueeze(1), out=z)
-        rows = max(1, _CHUNK_SAMPLES // dim)
-        chunks = [(env, start, min(start + rows, pop)) for env in range(n_envs) for start in range(0, pop, rows)]
-        base = int(th.randint(0, 2**62, (1,), generator=generator).item())
-
-        def share(index: int, first: int, last: int) -> Callable[[], None]:
-            def run() -> None:
-                noise = _buffer(self._buffers, f"noise{index}", rows * dim, th.float32, z.device)
-                lookup = _buffer(self._buffers, f"index{index}", min(rows * dim, _GATHER_CHUNK), th.int32, z.device)
-                chunk_generator = th.Generator() if self.sampling != "truncated" else None
-                for c in range(first, last):
-                    env, start, stop = chunks[c]
-                    out = noise[: (stop - start) * dim].view(stop - start, dim)
-                    if chunk_generator is None:
-                        bits = th.from_numpy(np.random.SFC64(base + c).random_raw((out.numel() + 3) // 4))
-                        _levels_to_samples(bits.view(th.uint16)[: out.numel()], out, False, lookup)
-                    else:
-                        out.normal_(generator=chunk_generator.manual_seed(base + c))
-                    th.addcmul(mean[env], out, std[env], out=z[env, start:stop])
-
-            return run
-
-        ranges = parallel.split_range(len(chunks), th.get_num_threads())
-        parallel.run_shares([share(i, first, last) for i, (first, last) in enumerate(ranges)])
-        return z
+        self.sampler = CandidateSampler(population_size, sampling)
+        self._workspace = Workspace()
 
     def optimize(
         self,
@@ -238,10 +100,7 @@ class CEM:
         elites = mean.unsqueeze(1).expand(n_envs, self.num_elites, dim)
         found = th.zeros(n_envs, dtype=th.bool, device=mean.device)
         for _ in range(self.iterations):
-            std = constrain_var(mean, var).sqrt()
-            if self.sampling == "truncated":  # _sample draws truncated-normal noise / sqrt(2)
-                std = std * math.sqrt(2.0)
-            z = self._sample(mean, std, generator)  # [n_envs, N, D]
+            z = self.sampler.sample(mean, constrain_var(mean, var).sqrt(), generator)  # [n_envs, N, D], reused buffer
             returns = evaluate(z)  # [n_envs, N]
             returns = th.where(th.isfinite(returns), returns, th.full_like(returns, -math.inf))
             top, idx = returns.topk(self.num_elites, dim=1)  # [n_envs, K]
@@ -250,11 +109,11 @@ class CEM:
             elites = z.view(n_envs * self.population_size, dim).index_select(0, rows).view(n_envs, -1, dim)
             valid = th.isfinite(top)  # [n_envs, K]: -inf rows are not elites
             count = valid.sum(dim=1, keepdim=True).clamp(min=1).to(z.dtype)  # [n_envs, 1]
-            # weighted means as [1, K] x [K, D] products: one pass over the elites each, where element-wise
-            # weighting and a reduction over K took five (6 ms per POPLIN-P iteration on one core, 1 ms this way)
+            # weighted means as [1, K] x [K, D] products: one pass over the elites each (element-wise weighting and a
+            # reduction over K take five)
             weight = (valid / count).to(z.dtype).unsqueeze(1)  # [n_envs, 1, K]
             elite_mean = th.bmm(weight, elites)  # [n_envs, 1, D]
-            deviation = _buffer(self._buffers, "deviation", elites.numel(), z.dtype, z.device).view(elites.shape)
+            deviation = self._workspace.get("deviation", elites.numel(), z.dtype, z.device).view(elites.shape)
             th.sub(elites, elite_mean, out=deviation).square_()
             elite_var = th.bmm(weight, deviation).squeeze(1)
             elite_mean = elite_mean.squeeze(1)
@@ -351,6 +210,11 @@ class SearchSpace(ABC):
         """Per-plan context computed once from the real observations ``[n_envs, o]`` (default: none)."""
         return None
 
+    # the work the space adds to a plan, in rows through the networks (for :meth:`MPCPlanner.flops`)
+    policy_row_flops = 0  # FLOPs of one row through the policy network
+    policy_rows_per_step = 0  # policy rows per candidate particle and imagined step in :meth:`actions`
+    prepare_steps = 0  # imagined steps of :meth:`prepare` (one policy row and one mean-model row each, per env)
+
     @abstractmethod
     def actions(self, z: th.Tensor, t: int, states: th.Tensor, context: Any) -> th.Tensor:
         """
@@ -364,6 +228,8 @@ class SearchSpace(ABC):
     @abstractmethod
     def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
         """Scaled action ``[n_envs, A]`` to execute given the optimizer's solution ``[n_envs, D]``."""
+
+    fallback_description = "the action-space centre"
 
     def fallback_action(self, obs: th.Tensor) -> th.Tensor:
         """Scaled action ``[n_envs, A]`` when no candidate had a finite return: the action-space centre."""
@@ -394,7 +260,29 @@ class ActionSequences(SearchSpace):
         return solution[:, : self.action_dim].clamp(-1.0, 1.0)
 
 
-class PolicyActionNoise(SearchSpace):
+class PolicySearchSpace(SearchSpace):
+    """
+    A search space around a policy network (POPLIN): when no candidate had a finite return, the policy's own action
+    is executed.
+
+    :param policy: the policy network
+    """
+
+    fallback_description = "the policy network's action"
+
+    def __init__(self, horizon: int, action_dim: int, init_var: float, policy: PolicyNetwork) -> None:
+        super().__init__(horizon, action_dim, init_var)
+        self.policy = policy
+
+    @property
+    def policy_row_flops(self) -> int:  # type: ignore[override]
+        return sum(2 * d_in * d_out for d_in, d_out in self.policy.shapes)
+
+    def fallback_action(self, obs: th.Tensor) -> th.Tensor:
+        return self.policy.act(obs)
+
+
+class PolicyActionNoise(PolicySearchSpace):
     """
     POPLIN-A (Wang & Ba 2019, section 4.1): the search vector is additive action noise
     ``delta_0 .. delta_{H-1}`` around the policy network's proposals, ``D = H * A``.
@@ -412,15 +300,21 @@ class PolicyActionNoise(SearchSpace):
     """
 
     def __init__(self, horizon: int, action_dim: int, init_var: float, policy: PolicyNetwork, proposal: str) -> None:
-        super().__init__(horizon, action_dim, init_var)
-        if proposal not in PROPOSALS:
-            raise ValueError(f"Unknown POPLIN-A proposal {proposal!r}; accepted values: {list(PROPOSALS)}")
-        self.policy = policy
+        check_choice("proposal", proposal, PROPOSALS)
+        super().__init__(horizon, action_dim, init_var, policy)
         self.proposal = proposal
 
     @property
     def block(self) -> int:
         return self.action_dim
+
+    @property
+    def policy_rows_per_step(self) -> int:  # type: ignore[override]
+        return 0 if self.proposal == "init" else 1
+
+    @property
+    def prepare_steps(self) -> int:  # type: ignore[override]
+        return self.horizon if self.proposal == "init" else 0
 
     def prepare(self, obs: th.Tensor, planner: MPCPlanner) -> th.Tensor | None:
         if self.proposal != "init":
@@ -442,11 +336,9 @@ class PolicyActionNoise(SearchSpace):
     def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
         return (self.policy.act(obs) + solution[:, : self.action_dim]).clamp(-1.0, 1.0)
 
-    def fallback_action(self, obs: th.Tensor) -> th.Tensor:
-        return self.policy.act(obs)
 
 
-class PolicyParameterNoise(SearchSpace):
+class PolicyParameterNoise(PolicySearchSpace):
     """
     POPLIN-P (Wang & Ba 2019, section 4.2): the search vector perturbs the policy network's
     parameters, ``omega`` in the flat layout of :class:`PolicyNetwork` (size W). Every candidate
@@ -462,15 +354,15 @@ class PolicyParameterNoise(SearchSpace):
     """
 
     def __init__(self, horizon: int, action_dim: int, init_var: float, policy: PolicyNetwork, noise: str) -> None:
-        super().__init__(horizon, action_dim, init_var)
-        if noise not in NOISES:
-            raise ValueError(f"Unknown POPLIN-P noise {noise!r}; accepted values: {list(NOISES)}")
-        self.policy = policy
+        check_choice("noise", noise, NOISES)
+        super().__init__(horizon, action_dim, init_var, policy)
         self.noise = noise
 
     @property
     def block(self) -> int:
         return self.policy.num_params
+
+    policy_rows_per_step = 1
 
     @property
     def dim(self) -> int:
@@ -488,9 +380,6 @@ class PolicyParameterNoise(SearchSpace):
 
     def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
         return self.policy.forward_perturbed(obs.unsqueeze(1), self.first_block(solution))[:, 0].clamp(-1.0, 1.0)
-
-    def fallback_action(self, obs: th.Tensor) -> th.Tensor:
-        return self.policy.act(obs)
 
 
 class PlanResult(NamedTuple):
@@ -519,7 +408,7 @@ class MPCPlanner:
     :param num_particles: particles per candidate (1 with ``"expectation"``)
     :param action_low: env lower bounds ``[A]``
     :param action_high: env upper bounds ``[A]``
-    :param dtype: ``th.float32``, or ``th.bfloat16`` to run the networks' matmuls in bf16 (fp32 accumulation)
+    :param dtype: ``"float32"``, or ``"bfloat16"`` to run the networks' matmuls in bf16 (fp32 accumulation)
     :param max_batch_rows: upper bound on the rows pushed through the ensemble at once (per candidate:
         its particles, or the E members with ``"expectation"``); larger populations are evaluated in chunks
         of candidates, with identical results. ``None``: no bound.
@@ -536,15 +425,13 @@ class MPCPlanner:
         num_particles: int,
         action_low: th.Tensor,
         action_high: th.Tensor,
-        dtype: th.dtype = th.float32,
+        dtype: str = "float32",
         max_batch_rows: int | None = None,
     ) -> None:
         if reward_fn is None and not model.learned_reward:
             raise ValueError("The planner needs a reward: pass reward_fn or use a model with learned_reward=True.")
-        if dtype not in (th.float32, th.bfloat16):
-            raise ValueError(f"Planning dtype must be float32 or bfloat16, got {dtype}")
-        if max_batch_rows is not None and max_batch_rows < 1:
-            raise ValueError(f"max_batch_rows must be >= 1 or None, got {max_batch_rows}")
+        check_choice("planning_dtype", dtype, list(PLANNING_DTYPES))
+        check_positive_int("max_batch_rows", max_batch_rows, optional=True)
         self.model = model
         self.search_space = search_space
         self.optimizer = optimizer
@@ -554,8 +441,32 @@ class MPCPlanner:
         self.num_particles = 1 if propagation == "expectation" else num_particles
         self.action_low = action_low
         self.action_scale = (action_high - action_low) / 2.0
-        self.dtype = dtype
+        self.dtype = PLANNING_DTYPES[dtype]
         self.max_batch_rows = max_batch_rows
+
+    def flops(self, n_envs: int = 1) -> float:
+        """
+        Analytic FLOPs of one plan (2 per multiply-add of the network products, the rest neglected): every CEM
+        iteration pushes each candidate's rows through the ensemble (expectation: E members on the mean half of the
+        output layer; particles: one member each, mean and log-variance) and, where the search space says so, through
+        the policy network; plus the search space's per-plan work and, with a policy, the executed and fallback
+        actions. ``tests/test_planning.py`` checks it against the rows the networks see during a plan.
+
+        :param n_envs: envs planned in one batch
+        """
+        model, space = self.model, self.search_space
+        hidden = sum(2 * d_in * d_out for d_in, d_out in pairwise([model.in_dim, *model.hidden_sizes]))
+        last = model.hidden_sizes[-1] if model.hidden_sizes else model.in_dim
+        mean_row = hidden + 2 * last * model.out_dim  # the mean half of the output layer
+        if self.propagation == "expectation":
+            model_rows = model.ensemble_size * mean_row
+        else:
+            model_rows = self.num_particles * (hidden + 2 * last * 2 * model.out_dim)
+        policy_rows = self.num_particles * space.policy_rows_per_step * space.policy_row_flops
+        per_plan = self.optimizer.iterations * space.horizon * self.optimizer.population_size * (model_rows + policy_rows)
+        per_plan += space.prepare_steps * (model.ensemble_size * mean_row + space.policy_row_flops)
+        per_plan += 2 * space.policy_row_flops  # the executed and the fallback action of every env
+        return float(n_envs * per_plan)
 
     def to_env_units(self, scaled: th.Tensor) -> th.Tensor:
         """Map scaled actions in [-1, 1] to env units."""
@@ -631,15 +542,30 @@ class MPCPlanner:
         return total.mean(dim=2)
 
     @th.inference_mode()
-    def plan(self, obs: th.Tensor, mean: th.Tensor, generator: th.Generator | None = None) -> PlanResult:
+    def plan(
+        self,
+        obs: th.Tensor,
+        mean: th.Tensor,
+        generator: th.Generator | None = None,
+        observer: Callable[[th.Tensor, th.Tensor], None] | None = None,
+    ) -> PlanResult:
         """
         :param obs: real observations ``[n_envs, o]``
         :param mean: warm-start mean ``[n_envs, D]``
         :param generator: random generator for sampling and propagation
+        :param observer: called with every iteration's candidates ``[n_envs, N, D]`` and their returns
+            ``[n_envs, N]`` (the candidates' buffer is reused: copy what you keep); for analyses
         """
         context = self.search_space.prepare(obs, self)
+
+        def evaluate(z: th.Tensor) -> th.Tensor:
+            returns = self.rollout(obs, z, context, generator)
+            if observer is not None:
+                observer(z, returns)
+            return returns
+
         result = self.optimizer.optimize(
-            lambda z: self.rollout(obs, z, context, generator),
+            evaluate,
             mean,
             self.search_space.initial_var(mean),
             self.search_space.constrain_var,
@@ -653,3 +579,128 @@ class MPCPlanner:
         # an env whose plan failed starts afresh at the next step
         next_mean = th.where(found, space.shift(result.solution), space.initial_mean(obs.shape[0], obs.device))
         return PlanResult(action, next_mean, result.elite_return, result.solution, result.elites, ~result.found)
+
+
+class MPCStep(NamedTuple):
+    """One MPC step for a batch of envs, on the host where SB3 wants it and on the device for distillation."""
+
+    actions: np.ndarray  # [n_envs, A] in env units
+    state: np.ndarray  # [n_envs, D] warm start for the next step (the shifted solution)
+    plan: PlanResult  # the plan, on the device
+
+
+class MPCController:
+    """
+    Model-predictive control with a :class:`MPCPlanner`: one plan per env step, warm-started with the previous
+    step's shifted solution (per env, reset at episode starts), with the planner's random generator and the plan
+    statistics that are logged. Its :meth:`state_dict` is saved with the agent.
+
+    :param planner: the planner
+    :param device: where the planner runs
+    """
+
+    def __init__(self, planner: MPCPlanner, device: th.device | str) -> None:
+        self.planner = planner
+        self.device = th.device(device)
+        self.generator = th.Generator(device=self.device)
+        self.warm_start: th.Tensor | None = None  # the agent's own warm start (predict without a state)
+        self._return_sum = th.zeros((), device=self.device)
+        self._plans = 0
+        self._fallbacks = 0
+        self._fallback_warned = False
+
+    def seed(self, seed: int | None) -> None:
+        """Seed the planner's generator (``None``: from a non-deterministic source)."""
+        if seed is None:
+            self.generator.seed()
+        else:
+            self.generator.manual_seed(seed)
+
+    def _start_mean(self, n_envs: int, state: np.ndarray | None, episode_start: np.ndarray | None) -> th.Tensor:
+        space = self.planner.search_space
+        if state is None and episode_start is None and self.warm_start is not None and self.warm_start.shape[0] == n_envs:
+            mean = self.warm_start
+        elif state is None:
+            mean = space.initial_mean(n_envs, self.device)
+        else:
+            mean = th.as_tensor(state, dtype=th.float32, device=self.device)
+            if mean.shape != (n_envs, space.dim):
+                raise ValueError(
+                    f"state has shape {tuple(mean.shape)} but the planner needs ({n_envs}, {space.dim}): pass back the "
+                    "state returned by the previous predict() call for the same observations, or None"
+                )
+        if episode_start is not None:
+            reset = th.as_tensor(np.asarray(episode_start, dtype=bool).reshape(-1), device=self.device)
+            mean = th.where(reset.unsqueeze(1), space.initial_mean(n_envs, self.device), mean)
+        return mean
+
+    def step(self, obs: th.Tensor, state: np.ndarray | None = None, episode_start: np.ndarray | None = None) -> MPCStep:
+        """
+        Plan the actions of a batch of envs. Without ``state`` and ``episode_start`` the controller continues from
+        its own warm start (as during training) and keeps the new one.
+
+        :param obs: observations ``[n_envs, o]`` on the device
+        :param state: the state returned by the previous step for these envs, or None (fresh plans)
+        :param episode_start: per-env flags; True starts that env's plan afresh
+        """
+        internal = state is None and episode_start is None
+        plan = self.planner.plan(obs, self._start_mean(obs.shape[0], state, episode_start), self.generator)
+        if internal:
+            self.warm_start = plan.next_mean
+        self._return_sum = self._return_sum + plan.elite_return.sum()
+        self._plans += obs.shape[0]
+        # one device-to-host transfer for the actions, the fallback flags and the warm starts
+        actions = self.planner.to_env_units(plan.action)
+        host = th.cat([actions, plan.fallback.unsqueeze(1).float(), plan.next_mean], dim=1).cpu().numpy()
+        n_actions = actions.shape[1]
+        fallbacks = int((host[:, n_actions] > 0).sum())
+        if fallbacks:
+            self._on_fallback(fallbacks)
+        return MPCStep(host[:, :n_actions], host[:, n_actions + 1 :], plan)
+
+    def _on_fallback(self, count: int) -> None:
+        self._fallbacks += count
+        if not self._fallback_warned:
+            self._fallback_warned = True
+            warnings.warn(
+                "No planned candidate had a finite return (the model or the observation produced NaN/inf): executing "
+                f"{self.planner.search_space.fallback_description} instead. Counted in the logger as plan/fallbacks; "
+                "warned once.",
+                stacklevel=4,
+            )
+
+    def episodes_ended(self, dones: np.ndarray) -> None:
+        """Start the own warm start afresh for the envs whose episode ended."""
+        if self.warm_start is not None and np.any(dones):
+            reset = th.as_tensor(np.asarray(dones, dtype=bool), device=self.device)
+            fresh = self.planner.search_space.initial_mean(len(dones), self.device)
+            self.warm_start = th.where(reset.unsqueeze(1), fresh, self.warm_start)
+
+    def pop_statistics(self) -> dict[str, float | int]:
+        """The plan statistics since the last call (empty without plans): mean elite return and fallbacks."""
+        stats: dict[str, float | int] = {}
+        if self._plans:
+            stats = {"plan/elite_return": (self._return_sum / self._plans).item(), "plan/fallbacks": self._fallbacks}
+        self._return_sum = th.zeros((), device=self.device)
+        self._plans = 0
+        self._fallbacks = 0
+        return stats
+
+    def state_dict(self) -> dict[str, Any]:
+        """The random generator's state and the own warm start (CPU tensors)."""
+        warm = None if self.warm_start is None else self.warm_start.detach().cpu()
+        return {"generator": self.generator.get_state(), "warm_start": warm}
+
+    def load_state_dict(self, state: dict[str, Any], strict: bool = True) -> None:
+        """
+        :param state: what :meth:`state_dict` returned
+        :param strict: every key must be there
+        """
+        check_state_keys("MPC controller", state, ("generator", "warm_start"), strict)
+        if "generator" in state:
+            try:
+                self.generator.set_state(state["generator"].cpu())
+            except (RuntimeError, TypeError):  # saved on another kind of device: keep the seeded generator
+                warnings.warn("The planner's random state was saved on another device and is not restored.", stacklevel=2)
+        warm = state.get("warm_start")
+        self.warm_start = None if warm is None else warm.to(self.device)

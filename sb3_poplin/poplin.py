@@ -1,29 +1,26 @@
 """
 POPLIN as a Stable-Baselines3 algorithm: SB3 glue only.
 
-:class:`POPLIN` subclasses ``OffPolicyAlgorithm``: SB3 runs the loop, the replay buffer, logging,
-callbacks and save/load. This module resolves the settings, builds the networks
-(:mod:`sb3_poplin.policies`), the planner (:mod:`sb3_poplin.planning`) and the task
-(:mod:`sb3_poplin.tasks`), and overrides ``predict`` (MPC control), ``train`` (fit the model after
-each episode) and the save hooks.
+:class:`POPLIN` subclasses ``OffPolicyAlgorithm``: SB3 runs the loop, the replay buffer, logging, callbacks and
+save/load. The parts live elsewhere: the variants, their defaults and the settings' validation in
+:mod:`sb3_poplin.variants`; the networks in :mod:`sb3_poplin.policies`; MPC (planner, warm starts, plan statistics)
+in :class:`sb3_poplin.planning.MPCController`; what is distilled and how in
+:class:`sb3_poplin.distillation.Distiller`; the env's task in :mod:`sb3_poplin.tasks`; zip checks in
+:mod:`sb3_poplin.saving`. This module wires them into SB3: ``predict`` (MPC or policy control), ``train`` (fit the
+model after each episode, then distill) and the save hooks.
 
-Loop (Wang & Ba 2019, after PETS): uniform random actions until the model has been fitted once
-(one episode by default), then after every ``train_freq`` period (one episode) fit the model on
-all data and collect the next period with MPC.
+Loop (Wang & Ba 2019, after PETS): uniform random actions until the model has been fitted once (one episode by
+default), then after every ``train_freq`` period (one episode) fit the model on all data and collect the next
+period with MPC.
 """
 
 from __future__ import annotations
 
 import io
-import json
 import math
 import pathlib
-import warnings
-import zipfile
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from typing import Any, ClassVar, TypeVar
-
-import os
 
 import gymnasium as gym
 import numpy as np
@@ -33,119 +30,26 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
-from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, TensorDict
 
-from sb3_poplin.distillation import (
-    DISTILLATIONS,
-    average_perturbation,
-    behaviour_cloning,
-    gan_distillation,
-    saturated_fraction,
-)
-from sb3_poplin.dynamics import PROPAGATIONS
-from sb3_poplin.planning import (
-    CEM,
-    PlanResult,
-    NOISES,
-    PROPOSALS,
-    SAMPLINGS,
-    ActionSequences,
-    MPCPlanner,
-    PolicyActionNoise,
-    PolicyParameterNoise,
-    RandomShooting,
-    SearchSpace,
-)
+from sb3_poplin import saving, variants
+from sb3_poplin.distillation import Distiller
+from sb3_poplin.planning import MPCController, MPCPlanner, PolicySearchSpace
 from sb3_poplin.policies import POPLINPolicy
-from sb3_poplin.tasks import RewardFn, TerminationFn, check_observation_space, has_task, make_task
+from sb3_poplin.tasks import RewardFn, TerminationFn, check_spaces, env_id, max_episode_steps, resolve_task, task_env_kwargs
 
 SelfPOPLIN = TypeVar("SelfPOPLIN", bound="POPLIN")
 
-CONTROLS = ("mpc", "policy")
-PLANNING_DTYPES = {"float32": th.float32, "bfloat16": th.bfloat16}
-# variant -> initial CEM variance of its search space (the paper's demo settings)
-DEFAULT_INIT_VAR = {"pets": 0.25, "rs": 0.25, "poplin-a": 0.25, "poplin-p": 0.1}
-# variant -> default hidden widths of the policy network (None: the variant has none)
-DEFAULT_POLICY_NET_ARCH: dict[str, list[int] | None] = {"pets": None, "rs": None, "poplin-a": [64, 64], "poplin-p": [32]}
-# variant -> distill the final elites too ("imagined" data: BC-AI for POPLIN-A, as in the paper's demos)
-DEFAULT_DISTILL_IMAGINED = {"pets": False, "rs": False, "poplin-a": True, "poplin-p": False}
-GAN_DISCRIMINATOR_NET_ARCH = [64, 64]
 
+def replay_transitions(buffer: ReplayBuffer, device: th.device) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
+    """All stored transitions of a replay buffer as float32 tensors: obs, scaled actions, next obs, rewards."""
+    upper = buffer.buffer_size if buffer.full else buffer.pos
 
-def _env_id(env: GymEnv | str | None) -> str | None:
-    """The gymnasium id behind an env id, Env or VecEnv (None when it cannot be told)."""
-    if env is None or isinstance(env, str):
-        return env
-    try:
-        spec = env.get_attr("spec", [0])[0] if isinstance(env, VecEnv) else env.unwrapped.spec
-    except (AttributeError, IndexError):
-        return None
-    return None if spec is None else spec.id
+    def flat(array: np.ndarray) -> th.Tensor:
+        array = array[:upper]
+        return th.as_tensor(array.reshape(upper * array.shape[1], -1), dtype=th.float32, device=device)
 
-
-def _max_episode_steps(env: GymEnv | None) -> int | None:
-    if env is None:
-        return None
-    try:
-        spec = env.get_attr("spec", [0])[0] if isinstance(env, VecEnv) else env.spec
-    except (AttributeError, IndexError):
-        return None
-    return None if spec is None else spec.max_episode_steps
-
-
-def _check_spaces(env: GymEnv | None) -> None:
-    """Reject what the planner cannot handle, with the reason and the fix."""
-    if env is None:
-        return
-    action_space, observation_space = env.action_space, env.observation_space
-    if not isinstance(action_space, spaces.Box):
-        raise ValueError(
-            f"POPLIN plans continuous actions and needs a Box action space, got {action_space}. "
-            "Use a continuous-action environment (e.g. Pendulum-v1), or a model-free SB3 algorithm "
-            "such as DQN or PPO for discrete actions."
-        )
-    if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
-        raise ValueError(
-            f"POPLIN needs finite action bounds, got low={action_space.low}, high={action_space.high}. "
-            "Wrap the env with gymnasium.wrappers.ClipAction or RescaleAction to bound it."
-        )
-    check_observation_space(observation_space, _env_id(env))
-
-
-def _check_saved_agent(path: str | pathlib.Path | io.BufferedIOBase) -> None:
-    """Reject, with the reason and the fix, anything that is not a complete POPLIN zip."""
-    where = str(path) if isinstance(path, (str, pathlib.Path)) else "the given file object"
-    if isinstance(path, (str, pathlib.Path)) and not os.path.exists(path):
-        if os.path.exists(f"{path}.zip"):
-            path = f"{path}.zip"
-        else:
-            raise FileNotFoundError(f"No saved agent at {where} (nor {where}.zip): check the path given to POPLIN.load.")
-    start = path.tell() if isinstance(path, io.BufferedIOBase) else None
-    try:
-        with zipfile.ZipFile(path) as archive:  # type: ignore[arg-type]
-            names = set(archive.namelist())
-            corrupted = archive.testzip()
-            data = json.loads(archive.read("data")) if "data" in names else None
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as error:
-        raise ValueError(
-            f"{where} is not a readable POPLIN zip (truncated or corrupted? {error}). "
-            "Load a file written by POPLIN.save / model.save."
-        ) from None
-    finally:
-        if start is not None:
-            path.seek(start)  # type: ignore[union-attr]
-    if corrupted is not None:
-        raise ValueError(f"{where} is corrupted: its member {corrupted!r} fails the CRC check. Save the agent again.")
-    if not isinstance(data, dict) or "variant" not in data:
-        saved_by = data.get("policy_class", {}).get("__module__", "unknown") if isinstance(data, dict) else "unknown"
-        raise ValueError(
-            f"{where} was not saved by POPLIN (its policy comes from {saved_by!r}): "
-            "load it with the algorithm that saved it, e.g. stable_baselines3.SAC.load."
-        )
-    missing = {"policy.pth", "policy.dynamics_optimizer.pth"} - names
-    if missing:
-        raise ValueError(f"{where} is an incomplete POPLIN zip (missing {sorted(missing)}). Save the agent again.")
+    return flat(buffer.observations), flat(buffer.actions), flat(buffer.next_observations), flat(buffer.rewards)[:, 0]
 
 
 class POPLIN(OffPolicyAlgorithm):
@@ -219,13 +123,27 @@ class POPLIN(OffPolicyAlgorithm):
     :param _init_setup_model: build the networks at construction (SB3 interface)
     """
 
-    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
-        "pets": POPLINPolicy,
-        "rs": POPLINPolicy,
-        "poplin-a": POPLINPolicy,
-        "poplin-p": POPLINPolicy,
-    }
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {name: POPLINPolicy for name in variants.VARIANTS}
     policy: POPLINPolicy
+    mpc: MPCController
+    distiller: Distiller | None
+    # settings (resolved by sb3_poplin.variants.resolve_settings; the planner's: variants.PLANNER_SETTINGS)
+    init_var: float
+    distillation: str | None
+    distill_imagined: bool
+    distill_window: int | None
+    avg_step_size: float
+    policy_net_arch: list[int] | None
+    policy_learning_rate: float
+    policy_epochs: int
+    policy_batch_size: int
+    ensemble_size: int
+    dynamics_net_arch: list[int]
+    model_epochs: int
+    model_batch_size: int
+    model_learning_rate: float
+    holdout_ratio: float
+    learned_reward: bool | None
 
     def __init__(
         self,
@@ -272,52 +190,22 @@ class POPLIN(OffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
+        settings = {name: value for name, value in locals().items() if name in variants.SETTINGS}
         if isinstance(policy, str):
-            if policy not in self.policy_aliases:
-                raise ValueError(f"Unknown POPLIN variant {policy!r}; accepted values: {list(self.policy_aliases)}")
-            self.variant = policy
+            self.variant = variants.variant(policy).name
         elif _init_setup_model:
             raise ValueError(f"policy must be a variant name, one of {list(self.policy_aliases)}; got {policy!r}")
-        self.task_id = _env_id(env)
+        self.task_id = env_id(env)
         if isinstance(env, str):
-            env = gym.make(env, **(make_task(env).env_kwargs if has_task(env) else {}))
-        _check_spaces(env)
-
-        self.horizon = horizon
-        self.population_size = population_size
-        self.num_elites = num_elites
-        self.cem_iterations = cem_iterations
-        self.cem_alpha = cem_alpha
-        self.init_var = init_var
-        self.cem_sampling = cem_sampling
-        self.proposal = proposal
-        self.noise = noise
-        self.distillation = distillation
-        self.distill_imagined = distill_imagined
-        self.distill_window = distill_window
-        self.avg_step_size = avg_step_size
-        self.policy_net_arch = None if policy_net_arch is None else list(policy_net_arch)
-        self.policy_learning_rate = policy_learning_rate
-        self.policy_epochs = policy_epochs
-        self.policy_batch_size = policy_batch_size
-        self.ensemble_size = ensemble_size
-        self.dynamics_net_arch = list(dynamics_net_arch)
-        self.propagation = propagation
-        self.num_particles = num_particles
-        self.planning_dtype = planning_dtype
-        self.max_batch_rows = max_batch_rows
-        self.model_epochs = model_epochs
-        self.model_batch_size = model_batch_size
-        self.model_learning_rate = model_learning_rate
-        self.holdout_ratio = holdout_ratio
-        self.learned_reward = learned_reward
+            env = gym.make(env, **task_env_kwargs(env))
+        check_spaces(env)
+        if _init_setup_model:
+            settings = variants.resolve_settings(self.variant, settings)
+        self._control = settings.pop("control")
+        self.__dict__.update(settings)
         self.user_reward_fn = reward_fn
         self.user_termination_fn = termination_fn
         self._model_fitted = False
-        if _init_setup_model:
-            self._check_settings()
-            self._resolve_variant_defaults()
-        self._control = "mpc"
 
         default_train_freq = train_freq is None
         super().__init__(
@@ -340,84 +228,9 @@ class POPLIN(OffPolicyAlgorithm):
         )
         if _init_setup_model and default_train_freq and self.n_envs > 1:
             # SB3 counts episodes with one env only: refit every episode length's worth of steps
-            self.train_freq = (_max_episode_steps(self.env) or 1000, "step")
+            self.train_freq = (max_episode_steps(self.env) or 1000, "step")
         if _init_setup_model:
-            self.control = control
             self._setup_model()
-
-    # ------------------------------------------------------------------ settings
-    def _check_positive_ints(self, *names: str, optional: bool = False) -> None:
-        """Each named setting must be an integer >= 1 (or None when ``optional``)."""
-        for name in names:
-            value = getattr(self, name)
-            if optional and value is None:
-                continue
-            if not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-
-    def _check_settings(self) -> None:
-        self._check_positive_ints(
-            "horizon", "population_size", "cem_iterations", "ensemble_size", "model_epochs", "model_batch_size"
-        )
-        if self.variant != "rs" and not 1 <= self.num_elites <= self.population_size:
-            raise ValueError(
-                f"num_elites must be between 1 and population_size ({self.population_size}), got {self.num_elites}"
-            )
-        if not 0.0 <= self.cem_alpha < 1.0:
-            raise ValueError(f"cem_alpha must be in [0, 1), got {self.cem_alpha}")
-        if self.init_var is not None and not self.init_var > 0:
-            raise ValueError(f"init_var must be > 0 (or None for the variant default), got {self.init_var}")
-        if self.cem_sampling not in SAMPLINGS:
-            raise ValueError(f"Unknown cem_sampling {self.cem_sampling!r}; accepted values: {list(SAMPLINGS)}")
-        if self.propagation not in PROPAGATIONS:
-            raise ValueError(f"Unknown propagation {self.propagation!r}; accepted values: {list(PROPAGATIONS)}")
-        if self.propagation != "expectation" and (self.num_particles < 1 or self.num_particles % self.ensemble_size):
-            raise ValueError(
-                f"num_particles ({self.num_particles}) must be a positive multiple of ensemble_size "
-                f"({self.ensemble_size}) so that each member gets the same number of particles"
-            )
-        if self.planning_dtype not in PLANNING_DTYPES:
-            raise ValueError(f"Unknown planning_dtype {self.planning_dtype!r}; accepted values: {list(PLANNING_DTYPES)}")
-        if self.max_batch_rows is not None and self.max_batch_rows < 1:
-            raise ValueError(f"max_batch_rows must be >= 1 (or None for no bound), got {self.max_batch_rows}")
-        if not 0.0 <= self.holdout_ratio < 1.0:
-            raise ValueError(f"holdout_ratio must be in [0, 1), got {self.holdout_ratio}")
-        self._check_policy_settings()
-
-    def _check_policy_settings(self) -> None:
-        if self.proposal not in PROPOSALS:
-            raise ValueError(f"Unknown proposal {self.proposal!r} (POPLIN-A); accepted values: {list(PROPOSALS)}")
-        if self.noise not in NOISES:
-            raise ValueError(f"Unknown noise {self.noise!r} (POPLIN-P); accepted values: {list(NOISES)}")
-        accepted = DISTILLATIONS.get(self.variant, ())
-        if self.distillation is not None and self.distillation not in accepted:
-            if not accepted:
-                raise ValueError(
-                    f"The {self.variant!r} variant has no policy network to distill into; got distillation="
-                    f"{self.distillation!r}. Leave distillation=None, or use 'poplin-a' / 'poplin-p'."
-                )
-            raise ValueError(
-                f"Unknown distillation {self.distillation!r} for {self.variant!r}; accepted values: {list(accepted)}"
-            )
-        self._check_positive_ints("policy_batch_size")
-        self._check_positive_ints("policy_epochs", "distill_window", optional=True)
-        if not 0.0 < self.avg_step_size <= 1.0:
-            raise ValueError(f"avg_step_size must be in (0, 1] (1 = the paper's Avg), got {self.avg_step_size}")
-
-    def _resolve_variant_defaults(self) -> None:
-        """Resolve every ``None`` default that depends on the variant, in one place."""
-        if self.distillation is None and self.variant in DISTILLATIONS:
-            self.distillation = DISTILLATIONS[self.variant][0]
-        if self.policy_net_arch is None:
-            self.policy_net_arch = DEFAULT_POLICY_NET_ARCH[self.variant]
-        elif self.variant in ("pets", "rs"):
-            raise ValueError(f"The {self.variant!r} variant has no policy network: leave policy_net_arch=None.")
-        if self.distill_imagined is None:
-            self.distill_imagined = DEFAULT_DISTILL_IMAGINED[self.variant]
-        if self.policy_epochs is None:
-            self.policy_epochs = 40 if self.distillation == "gan" else 100
-        if self.init_var is None:
-            self.init_var = DEFAULT_INIT_VAR[self.variant]
 
     @property
     def control(self) -> str:
@@ -426,45 +239,13 @@ class POPLIN(OffPolicyAlgorithm):
 
     @control.setter
     def control(self, value: str) -> None:
-        if value not in CONTROLS:
-            raise ValueError(f"Unknown control {value!r}; accepted values: {list(CONTROLS)}")
-        if value == "policy" and self.variant in ("pets", "rs"):
-            raise ValueError(
-                f"The {self.variant!r} variant has no policy network, so control='policy' is not available: "
-                "use control='mpc', or a 'poplin-a' / 'poplin-p' agent."
-            )
+        variants.check_control(self.variant, value)
         self._control = value
 
-    # ------------------------------------------------------------------ setup
-    def _resolve_task(self) -> tuple[RewardFn | None, TerminationFn | None, tuple[int, ...]]:
-        task = make_task(self.task_id) if self.task_id is not None and has_task(self.task_id) else None
-        reward_fn = self.user_reward_fn or (task.reward_fn if task else None)
-        termination_fn = self.user_termination_fn or (task.termination_fn if task else None)
-        exclude = task.model_input_exclude if task else ()
-        if self.learned_reward is None:
-            self.learned_reward = reward_fn is None
-        if self.learned_reward and termination_fn is None and task is None:
-            warnings.warn(
-                f"No reward or termination function is known for {self.task_id!r}: the model learns the reward and "
-                "the planner assumes episodes never terminate. Pass termination_fn= (or register a TaskSpec with "
-                "sb3_poplin.tasks.register_task) if this env can terminate.",
-                stacklevel=3,
-            )
-        return (None if self.learned_reward else reward_fn), termination_fn, tuple(exclude)
-
-    def _make_search_space(self) -> SearchSpace:
-        assert self.init_var is not None
-        action_dim = int(self.action_space.shape[0])  # type: ignore[index]
-        if self.variant == "poplin-a":
-            assert self.policy.actor is not None
-            return PolicyActionNoise(self.horizon, action_dim, self.init_var, self.policy.actor, self.proposal)
-        if self.variant == "poplin-p":
-            assert self.policy.actor is not None
-            return PolicyParameterNoise(self.horizon, action_dim, self.init_var, self.policy.actor, self.noise)
-        return ActionSequences(self.horizon, action_dim, self.init_var)
-
     def _setup_model(self) -> None:
-        reward_fn, termination_fn, exclude = self._resolve_task()
+        reward_fn, termination_fn, exclude, self.learned_reward = resolve_task(
+            self.task_id, self.user_reward_fn, self.user_termination_fn, self.learned_reward
+        )
         self.policy_kwargs = dict(
             ensemble_size=self.ensemble_size,
             dynamics_net_arch=self.dynamics_net_arch,
@@ -473,70 +254,65 @@ class POPLIN(OffPolicyAlgorithm):
             model_learning_rate=self.model_learning_rate,
             policy_net_arch=self.policy_net_arch,
             policy_learning_rate=self.policy_learning_rate,
-            discriminator_net_arch=GAN_DISCRIMINATOR_NET_ARCH if self.distillation == "gan" else None,
+            discriminator_net_arch=list(variants.GAN_DISCRIMINATOR_NET_ARCH) if self.distillation == "gan" else None,
         )
-        self._generator = th.Generator(device=self.device)
         super()._setup_model()
         self.policy.set_training_mode(False)
-        optimizer: CEM | RandomShooting
-        if self.variant == "rs":
-            optimizer = RandomShooting(self.population_size)
-        else:
-            optimizer = CEM(self.population_size, self.num_elites, self.cem_iterations, self.cem_alpha, self.cem_sampling)
         assert isinstance(self.action_space, spaces.Box)
-        self.planner = MPCPlanner(
-            model=self.policy.dynamics,
-            search_space=self._make_search_space(),
-            optimizer=optimizer,
-            reward_fn=reward_fn,
-            termination_fn=termination_fn,
-            propagation=self.propagation,
-            num_particles=self.num_particles,
-            action_low=th.as_tensor(self.action_space.low, dtype=th.float32, device=self.device),
-            action_high=th.as_tensor(self.action_space.high, dtype=th.float32, device=self.device),
-            dtype=PLANNING_DTYPES[self.planning_dtype],
-            max_batch_rows=self.max_batch_rows,
+        planner = variants.build_planner(
+            self.variant,
+            variants.settings_of(self),
+            self.policy.dynamics,
+            self.policy.actor,
+            reward_fn,
+            termination_fn,
+            self.action_space,
+            self.device,
         )
-        self._warm_start: th.Tensor | None = None
-        self._plan_return_sum = th.zeros((), device=self.device)
-        self._plan_count = 0
-        self._fallbacks = 0  # plans with no finite candidate since the last log
-        self._fallback_warned = False
+        self.mpc = MPCController(planner, self.device)
+        self.mpc.seed(self.seed)  # SB3 seeded everything else at the start of _setup_model
+        self.distiller = None
+        if self.policy.actor is not None:
+            assert isinstance(planner.search_space, PolicySearchSpace) and self.distillation is not None
+            self.distiller = Distiller(
+                self.distillation,
+                planner.search_space,
+                self.policy,
+                imagined=self.distill_imagined,
+                window=self.distill_window,
+                avg_step_size=self.avg_step_size,
+                epochs=self.policy_epochs,
+                batch_size=self.policy_batch_size,
+                noise_var=self.init_var,
+            )
         self._collecting = False  # True while SB3's rollout collection asks for an action
-        # planned real steps since the last distillation (one dict of tensors per planned step)
-        self._planned: list[dict[str, th.Tensor]] = []
-        # the BC/GAN dataset: the most recent `distill_window` planned steps (states, actions, imagined actions)
-        self._distill_data: dict[str, th.Tensor] = {}
-        saved = self.__dict__.pop("_saved_planner_state", None)  # restored by load()
-        if saved is not None:
-            self._restore_planner_state(saved)
+
+    @property
+    def planner(self) -> MPCPlanner:
+        """The MPC planner: the search space, the optimizer and the rollout through the model."""
+        return self.mpc.planner
 
     def set_random_seed(self, seed: int | None = None) -> None:
         """Seed python, numpy, torch, the action space and the planner's generator."""
         super().set_random_seed(seed)
-        generator = getattr(self, "_generator", None)
-        if generator is not None:
-            if seed is None:
-                generator.seed()
-            else:
-                generator.manual_seed(seed)
+        if hasattr(self, "mpc"):
+            self.mpc.seed(seed)
 
     # ------------------------------------------------------------------ acting
     def predict(
         self,
         observation: np.ndarray | dict[str, np.ndarray],
-        state: Any = None,
+        state: tuple[np.ndarray, ...] | None = None,
         episode_start: np.ndarray | None = None,
         deterministic: bool = False,
-    ) -> tuple[np.ndarray, Any]:
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
         """
         Plan actions for one observation or a VecEnv batch (all envs in one batched plan).
 
-        The returned state is the planner's warm start (the shifted CEM mean, one row per env);
-        pass it back with ``episode_start`` as ``evaluate_policy`` does. Without state and
-        episode_start the agent keeps its own warm start between calls (as during training).
-        Planning is stochastic either way; ``deterministic`` is accepted for SB3 compatibility and
-        executes the final CEM mean, as in the paper.
+        The returned state is the planner's warm start (the shifted CEM mean, one row per env, as a numpy array);
+        pass it back with ``episode_start`` as ``evaluate_policy`` does. Without state and episode_start the agent
+        keeps its own warm start between calls (as during training). Planning is stochastic either way;
+        ``deterministic`` is accepted for SB3 compatibility and executes the final CEM mean, as in the paper.
 
         :param observation: observation(s) in env units
         :param state: warm start returned by the previous call, or None
@@ -549,71 +325,10 @@ class POPLIN(OffPolicyAlgorithm):
         obs_tensor, vectorized = self.policy.obs_to_tensor(observation)
         assert isinstance(obs_tensor, th.Tensor)
         obs = obs_tensor.float()
-        n_envs = obs.shape[0]
-        space = self.planner.search_space
-        internal = state is None and episode_start is None
-        if internal and self._warm_start is not None and self._warm_start.shape[0] == n_envs:
-            mean = self._warm_start
-        elif state is None:
-            mean = space.initial_mean(n_envs, self.device)
-        else:
-            mean = th.as_tensor(state, dtype=th.float32, device=self.device)
-            if mean.shape != (n_envs, space.dim):
-                raise ValueError(
-                    f"state has shape {tuple(mean.shape)} but the planner needs ({n_envs}, {space.dim}): pass back the "
-                    "state returned by the previous predict() call for the same observations, or None"
-                )
-        if episode_start is not None:
-            reset = th.as_tensor(np.asarray(episode_start, dtype=bool).reshape(-1), device=self.device)
-            mean = th.where(reset.unsqueeze(1), space.initial_mean(n_envs, self.device), mean)
-        result = self.planner.plan(obs, mean, self._generator)
-        if internal:
-            self._warm_start = result.next_mean
-        self._plan_return_sum = self._plan_return_sum + result.elite_return.sum()
-        self._plan_count += n_envs
-        # one device-to-host transfer for the actions and the fallback flags
-        host = th.cat([self.planner.to_env_units(result.action), result.fallback.unsqueeze(1).float()], dim=1).cpu().numpy()
-        actions, fallback = host[:, :-1], host[:, -1] > 0
-        if fallback.any():
-            self._on_fallback(int(fallback.sum()))
-        if self._collecting and self.policy.actor is not None:
-            self._record_planned_step(obs, result, th.as_tensor(~fallback, device=self.device))
-        if not vectorized:
-            actions = actions.squeeze(0)
-        return actions, result.next_mean
-
-    @th.no_grad()
-    def _record_planned_step(self, obs: th.Tensor, result: PlanResult, keep: th.Tensor) -> None:
-        """
-        Keep what distillation needs of a planned real step (a failed plan says nothing): the state and
-        the executed action; for Avg the executed perturbation block; with ``distill_imagined`` the final
-        elites' first actions (or blocks), computed now with the policy the planner used.
-        """
-        space = self.planner.search_space
-        states = obs[keep]
-        record = {"states": states, "actions": result.action[keep]}
-        if self.distillation == "avg":
-            record["blocks"] = space.first_block(result.solution)[keep]
-        if self.distill_imagined:
-            elite_blocks = space.first_block(result.elites)[keep]  # [b, K, block]
-            if self.distillation == "avg":
-                record["elite_blocks"] = elite_blocks
-            else:
-                b, k = elite_blocks.shape[:2]
-                imagined = space.executed_action(elite_blocks.flatten(0, 1), states.repeat_interleave(k, dim=0), None)
-                record["imagined"] = imagined.view(b, k, -1)  # [b, K, A]
-        self._planned.append(record)
-
-    def _on_fallback(self, count: int) -> None:
-        self._fallbacks += count
-        if not self._fallback_warned:
-            self._fallback_warned = True
-            fallback = "the policy network's action" if self.policy.actor is not None else "the action-space centre"
-            warnings.warn(
-                f"No planned candidate had a finite return (the model or the observation produced NaN/inf): "
-                f"executing {fallback} instead. Counted in the logger as plan/fallbacks; warned once.",
-                stacklevel=3,
-            )
+        step = self.mpc.step(obs, state, episode_start)  # type: ignore[arg-type]
+        if self._collecting and self.distiller is not None:
+            self.distiller.record(obs, step.plan)
+        return (step.actions if vectorized else step.actions.squeeze(0)), step.state  # type: ignore[return-value]
 
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
@@ -638,91 +353,17 @@ class POPLIN(OffPolicyAlgorithm):
     ) -> None:
         super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
         if np.any(dones):
-            self._record_plan_stats()  # logged with the episode they describe (SB3 dumps right after)
-        if self._warm_start is not None and np.any(dones):
-            reset = th.as_tensor(np.asarray(dones, dtype=bool), device=self.device)
-            fresh = self.planner.search_space.initial_mean(len(dones), self.device)
-            self._warm_start = th.where(reset.unsqueeze(1), fresh, self._warm_start)
-
-    def _record_plan_stats(self) -> None:
-        """Log the planner's statistics since the last call: mean elite return and fallbacks."""
-        if self._plan_count:
-            self.logger.record("plan/elite_return", (self._plan_return_sum / self._plan_count).item())
-            self.logger.record("plan/fallbacks", self._fallbacks)
-        self._plan_return_sum = th.zeros((), device=self.device)
-        self._plan_count = 0
-        self._fallbacks = 0
+            # logged with the episode they describe (SB3 dumps right after)
+            for key, value in self.mpc.pop_statistics().items():
+                self.logger.record(key, value)
+            self.mpc.episodes_ended(dones)
 
     # ------------------------------------------------------------------ training
-    def _transitions(self) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
-        """All stored transitions as float32 tensors: obs, scaled actions, next obs, rewards."""
-        buffer = self.replay_buffer
-        assert buffer is not None
-        upper = buffer.buffer_size if buffer.full else buffer.pos
-
-        def flat(array: np.ndarray) -> th.Tensor:
-            array = array[:upper]
-            return th.as_tensor(array.reshape(upper * array.shape[1], -1), dtype=th.float32, device=self.device)
-
-        return flat(buffer.observations), flat(buffer.actions), flat(buffer.next_observations), flat(buffer.rewards)[:, 0]
-
-    def _distill(self) -> dict[str, float]:
-        """Train the policy network from the planned steps (Avg: those since the last call; BC/GAN: the window)."""
-        actor = self.policy.actor
-        if actor is None or not self._planned:
-            return {}
-        new = {key: th.cat([record[key] for record in self._planned]) for key in self._planned[0]}
-        self._planned = []
-        if self.distillation == "avg":  # perturbations are relative to the theta they were planned with
-            blocks = new["blocks"]
-            if "elite_blocks" in new:
-                blocks = th.cat([blocks, new["elite_blocks"].flatten(0, 1)])
-            stats = average_perturbation(actor, blocks, self.avg_step_size)
-            actor.update_whitening(new["states"])
-            return {**stats, "policy_saturation": saturated_fraction(actor, new["states"])}
-        for key, value in new.items():
-            kept = th.cat([self._distill_data[key], value]) if key in self._distill_data else value
-            self._distill_data[key] = kept if self.distill_window is None else kept[-self.distill_window :]
-        data = new if self.distill_window is None else self._distill_data
-        states, targets = data["states"], data["actions"]
-        if "imagined" in data:
-            k = data["imagined"].shape[1]
-            states = th.cat([states, states.repeat_interleave(k, dim=0)])
-            targets = th.cat([targets, data["imagined"].flatten(0, 1)])
-        actor.update_whitening(new["states"])  # changes the parametrisation, not the function
-        assert self.policy_epochs is not None
-        with th.enable_grad():
-            if self.distillation == "gan":
-                assert self.policy.discriminator is not None and self.init_var is not None
-                stats = gan_distillation(
-                    actor,
-                    self.policy.actor_optimizer,
-                    self.policy.discriminator,
-                    self.policy.discriminator_optimizer,
-                    states,
-                    targets,
-                    noise_var=self.init_var,
-                    epochs=self.policy_epochs,
-                    batch_size=self.policy_batch_size,
-                    generator=self._generator,
-                )
-            else:
-                stats = behaviour_cloning(
-                    actor,
-                    self.policy.actor_optimizer,
-                    states,
-                    targets,
-                    epochs=self.policy_epochs,
-                    batch_size=self.policy_batch_size,
-                    generator=self._generator,
-                )
-        saturation = saturated_fraction(actor, new["states"])
-        return {**stats, "policy_samples": float(states.shape[0]), "policy_saturation": saturation}
-
     def train(self, gradient_steps: int, batch_size: int) -> None:
         """Refit the dynamics model on all data (``model_epochs`` epochs), then distill the policy."""
         self.policy.set_training_mode(True)
-        obs, actions, next_obs, rewards = self._transitions()
+        assert self.replay_buffer is not None
+        obs, actions, next_obs, rewards = replay_transitions(self.replay_buffer, self.device)
         result = self.policy.dynamics.fit(
             obs,
             actions,
@@ -732,9 +373,9 @@ class POPLIN(OffPolicyAlgorithm):
             epochs=self.model_epochs,
             batch_size=self.model_batch_size,
             holdout_ratio=self.holdout_ratio,
-            generator=self._generator,
+            generator=self.mpc.generator,
         )
-        distill_stats = self._distill()
+        distill_stats = {} if self.distiller is None else self.distiller.distill(self.mpc.generator)
         self.policy.set_training_mode(False)
         self._model_fitted = True
         for key, value in distill_stats.items():
@@ -767,40 +408,6 @@ class POPLIN(OffPolicyAlgorithm):
         )
 
     # ------------------------------------------------------------------ saving
-    def _restore_planner_state(self, saved: dict[str, Any]) -> None:
-        try:
-            self._generator.set_state(saved["generator"])
-        except (RuntimeError, TypeError):  # saved on another kind of device: keep the seeded generator
-            warnings.warn("The planner's random state was saved on another device and is not restored.", stacklevel=2)
-        warm = saved.get("warm_start")
-        self._warm_start = None if warm is None else warm.to(self.device)
-        self._distill_data = {key: value.to(self.device) for key, value in saved.get("distill_data", {}).items()}
-        self._planned = [{key: value.to(self.device) for key, value in record.items()} for record in saved.get("planned", [])]
-
-    def save(
-        self,
-        path: str | pathlib.Path | io.BufferedIOBase,
-        exclude: Iterable[str] | None = None,
-        include: Iterable[str] | None = None,
-    ) -> None:
-        """
-        Save everything needed to plan and to keep training: settings, networks and normalisers,
-        optimizers, the control mode, the planner's random state, its warm start and the planned steps
-        not yet distilled (not the replay buffer: ``save_replay_buffer``).
-        """
-        warm = None if self._warm_start is None else self._warm_start.detach().cpu()
-        self._saved_planner_state = {
-            "generator": self._generator.get_state(),
-            "warm_start": warm,
-            "distill_data": {key: value.detach().cpu() for key, value in self._distill_data.items()},
-            # planned steps since the last distillation: a save in mid-episode must not drop them
-            "planned": [{key: value.detach().cpu() for key, value in record.items()} for record in self._planned],
-        }
-        try:
-            super().save(path, exclude, include)
-        finally:
-            del self._saved_planner_state
-
     @classmethod
     def load(  # type: ignore[override]
         cls: type[SelfPOPLIN],
@@ -814,27 +421,28 @@ class POPLIN(OffPolicyAlgorithm):
         **kwargs: Any,
     ) -> SelfPOPLIN:
         """
-        Load a saved agent (an env is optional: planning needs none). Same arguments as SB3's
-        ``load``, plus:
+        Load a saved agent (an env is optional: planning needs none), also one saved by sb3_poplin 0.1.0. Same
+        arguments as SB3's ``load``, plus:
 
         :param control: ``"mpc"`` or ``"policy"`` to override the saved control mode
         """
-        _check_saved_agent(path)
+        saving.check_saved_agent(path)
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
         if control is not None:
             model.control = control
         return model
 
-    def _excluded_save_params(self) -> list[str]:
-        return [
-            *super()._excluded_save_params(),
-            "planner",
-            "_generator",
-            "_warm_start",
-            "_plan_return_sum",
-            "_planned",
-            "_distill_data",
-        ]
+    def set_parameters(
+        self, load_path_or_dict: str | TensorDict, exact_match: bool = True, device: th.device | str = "auto"
+    ) -> None:
+        """SB3's ``set_parameters``; a 0.1.0 zip's planner state (restored into ``data`` by ``load``) is upgraded."""
+        legacy = self.__dict__.pop("_saved_planner_state", None)
+        if legacy is not None and isinstance(load_path_or_dict, dict):
+            upgraded = saving.upgrade_legacy_state(legacy, with_distiller=self.distiller is not None)
+            load_path_or_dict = {**load_path_or_dict, **upgraded}  # type: ignore[dict-item]
+        super().set_parameters(load_path_or_dict, exact_match, device)
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        return ["policy", *self.policy.optimizer_names()], []
+        # the MPC and distillation state are saved as state dicts (mpc.pth, distiller.pth), restored by set_parameters
+        extra = ["mpc"] if self.distiller is None else ["mpc", "distiller"]
+        return ["policy", *self.policy.optimizer_names(), *extra], []

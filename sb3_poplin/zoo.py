@@ -37,15 +37,12 @@ import pathlib
 import re
 import runpy
 import sys
-import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 import optuna
 import rl_zoo3.train
-import yaml
 from rl_zoo3 import ALGOS
 from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
@@ -53,15 +50,11 @@ from stable_baselines3.common.type_aliases import GymEnv
 
 from sb3_poplin.callbacks import ControlModesEvalCallback
 from sb3_poplin.poplin import POPLIN
-from sb3_poplin.tasks import has_task, make_task
+from sb3_poplin.presets import HYPERPARAMS_DIR, PACKAGED_ALGOS, config_path, load_config
+from sb3_poplin.tasks import task_env_kwargs
+from sb3_poplin.variants import POLICY_VARIANTS
 
 ALGO = "poplin"
-HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
-# algorithms with a packaged hyperparameter file (poplin also has the CPU-sized poplin_cpu.yml)
-PACKAGED_ALGOS = ("poplin", "sac", "td3", "ppo", "crossq", "tqc")
-BUDGETS = ("paper", "cpu")
-# variants with a policy network, i.e. with a policy-control mode to evaluate
-POLICY_VARIANTS = ("poplin-a", "poplin-p")
 PLOT_COMMANDS = ("all_plots", "plot_train", "plot_from_file")
 COMMANDS = ("train", "enjoy", "record_video", "plots", *PLOT_COMMANDS)
 
@@ -69,37 +62,6 @@ SelfPlayedPOPLIN = TypeVar("SelfPlayedPOPLIN", bound="PlayedPOPLIN")
 
 
 # ---------------------------------------------------------------------------------------- hyperparameter files
-def config_path(algo: str, budget: str = "paper") -> Path | None:
-    """
-    The packaged hyperparameter file of an algorithm.
-
-    :param algo: rl-zoo3 algorithm name, e.g. ``"poplin"`` or ``"sac"``
-    :param budget: ``"paper"`` (the paper's planner settings) or ``"cpu"`` (planner budgets for 2 CPU cores);
-        only POPLIN has a CPU file, the other algorithms' settings do not depend on it
-    :return: the path, or ``None`` when the package ships no file for ``algo``
-    """
-    if budget not in BUDGETS:
-        raise ValueError(f"Unknown budget {budget!r}; accepted values: {list(BUDGETS)}")
-    if algo not in PACKAGED_ALGOS:
-        return None
-    name = f"{algo}_cpu" if algo == ALGO and budget == "cpu" else algo
-    return HYPERPARAMS_DIR / f"{name}.yml"
-
-
-def load_config(path: str | Path) -> dict[str, dict[str, Any]]:
-    """
-    Read an rl-zoo3 hyperparameter file (YAML anchors and merge keys resolved).
-
-    :param path: the ``.yml`` file
-    :return: env id -> hyperparameters
-    """
-    with open(path) as file:
-        content = yaml.safe_load(file)
-    if not isinstance(content, dict):
-        raise ValueError(f"{path} is not an rl-zoo3 hyperparameter file (expected a mapping of env ids)")
-    return content
-
-
 def default_config(algo: str, env_id: str, budget: str = "paper") -> str | None:
     """
     The ``--conf-file`` used when none is given: the packaged file when it has an entry for the env.
@@ -116,29 +78,6 @@ def default_config(algo: str, env_id: str, budget: str = "paper") -> str | None:
     if algo == ALGO or env_id in load_config(path):
         return str(path)
     return None
-
-
-def task_env_kwargs(env_id: str, env_kwargs: dict[str, Any] | None) -> dict[str, Any]:
-    """
-    Add the env kwargs that the task's reward function needs (``make_task(env_id).env_kwargs``).
-
-    :param env_id: gymnasium id
-    :param env_kwargs: the env kwargs of the config or command line; they win over the task's
-    :return: a new dict: ``env_kwargs`` plus the task's kwargs it lacks
-    """
-    merged = dict(env_kwargs or {})
-    if not has_task(env_id):
-        return merged
-    for key, value in make_task(env_id).env_kwargs.items():
-        if key not in merged:
-            merged[key] = value
-        elif merged[key] != value:
-            warnings.warn(
-                f"env_kwargs sets {key}={merged[key]!r} for {env_id}, but the task's reward function assumes "
-                f"{key}={value!r}: the planner's reward will be wrong unless a reward_fn is given.",
-                stacklevel=2,
-            )
-    return merged
 
 
 # ---------------------------------------------------------------------------------------- optuna sampler

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch as th
 
-from sb3_poplin import dynamics as dynamics_module
+from sb3_poplin import kernels
 from sb3_poplin.dynamics import EnsembleLinear, ProbabilisticEnsemble, default_weight_decays
 
 
@@ -59,14 +59,14 @@ def test_shared_input_mean_in_bf16_follows_parameter_updates():
 
 
 FUSED = pytest.mark.skipif(
-    dynamics_module.onednn_fused_linear(th.float32) is None, reason="this torch build has no oneDNN fused linear"
+    kernels.onednn_fused_linear(th.float32) is None, reason="this torch build has no oneDNN fused linear"
 )
 
 
 def plain_and_fused(monkeypatch, model, compute):
     """``compute()`` with the oneDNN fused forward, then with it switched off (the plain batched matmuls)."""
     fused = compute()
-    monkeypatch.setattr(dynamics_module, "onednn_fused_linear", lambda dtype: None)
+    monkeypatch.setattr(kernels, "onednn_fused_linear", lambda dtype: None)
     plain = compute()
     monkeypatch.undo()
     return fused, plain

@@ -107,5 +107,5 @@ def test_bfloat16_planning_stays_close_to_float32():
 def test_bad_speed_settings():
     with pytest.raises(ValueError, match=r"Unknown planning_dtype 'float16'; accepted values: \['float32', 'bfloat16'\]"):
         POPLIN("pets", "Pendulum-v1", planning_dtype="float16")
-    with pytest.raises(ValueError, match="max_batch_rows must be >= 1"):
+    with pytest.raises(ValueError, match="max_batch_rows must be an integer >= 1"):
         POPLIN("pets", "Pendulum-v1", max_batch_rows=0)

@@ -1,11 +1,14 @@
 """The CEM core, random shooting and the action-sequence search space, on problems with known answers."""
 
+import itertools
 import math
 
+import numpy as np
 import pytest
 import torch as th
 
-from sb3_poplin.planning import CEM, ActionSequences, RandomShooting, truncated_normal
+from sb3_poplin.planning import CEM, ActionSequences, RandomShooting
+from sb3_poplin.sampling import truncated_normal
 
 
 def identity_constraint(mean, var):
@@ -180,12 +183,12 @@ def test_cem_candidates_do_not_depend_on_the_thread_count():
 
 
 def test_run_shares_runs_every_share_and_raises_their_errors():
-    from sb3_poplin import parallel
+    from sb3_poplin import sampling
 
     out = th.zeros(4)
     with th.inference_mode():
         tasks = [lambda i=i: out[i].fill_(th.is_inference_mode_enabled() + i) for i in range(4)]
-        parallel.run_shares(tasks)
+        sampling.run_shares(tasks)
     assert out.tolist() == [1.0, 2.0, 3.0, 4.0]  # every share ran, in the caller's inference mode
 
     def fails():
@@ -193,10 +196,10 @@ def test_run_shares_runs_every_share_and_raises_their_errors():
 
     threads = th.get_num_threads()
     with pytest.raises(RuntimeError, match="share 1 failed"):
-        parallel.run_shares([lambda: None, fails])
+        sampling.run_shares([lambda: None, fails])
     assert th.get_num_threads() == threads  # the caller's intra-op thread count is restored
-    assert parallel.split_range(10, 3) == [(0, 3), (3, 7), (7, 10)]
-    assert parallel.split_range(2, 4) == [(0, 1), (1, 2)]
+    assert sampling.split_range(10, 3) == [(0, 3), (3, 7), (7, 10)]
+    assert sampling.split_range(2, 4) == [(0, 1), (1, 2)]
 
 
 def test_cem_variance_update_weights_only_finite_elites():
@@ -226,3 +229,45 @@ def test_cem_variance_update_weights_only_finite_elites():
     expected_var = alpha * var[0].double() + (1 - alpha) * finite.var(0, unbiased=False)
     assert th.allclose(seen_means[1][0].double(), expected_mean, atol=1e-6)
     assert th.allclose(variances[1][0].double(), expected_var, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(policy="pets"),
+        dict(policy="pets", propagation="tsinf", num_particles=4),
+        dict(policy="poplin-a", proposal="init"),
+        dict(policy="poplin-a", proposal="replan", propagation="ts1", num_particles=4),
+        dict(policy="poplin-p", noise="sep"),
+        dict(policy="poplin-p", noise="uni", propagation="tsinf", num_particles=4),
+    ],
+)
+def test_plan_flops_count_the_rows_the_networks_see(kwargs):
+    """``MPCPlanner.flops`` against the rows pushed through the ensemble and the policy during one real plan."""
+    from conftest import TINY
+
+    from sb3_poplin import POPLIN
+
+    model = POPLIN(env="Pendulum-v1", seed=0, **{**TINY, "dynamics_net_arch": (16, 24), **kwargs})
+    dynamics, actor = model.policy.dynamics, model.policy.actor
+    widths = [dynamics.in_dim, 16, 24]
+    hidden = sum(2 * a * b for a, b in itertools.pairwise(widths))
+    counted = []
+
+    def counting(method, flops_per_row):
+        def wrapped(x, *args):
+            counted.append(math.prod(x.shape[:-1]) * flops_per_row)
+            return method(x, *args)
+
+        return wrapped
+
+    e, out = dynamics.ensemble_size, dynamics.out_dim
+    dynamics.shared_input_mean = counting(dynamics.shared_input_mean, e * (hidden + 2 * 24 * out))  # B rows, E members
+    dynamics.predict = counting(dynamics.predict, hidden + 2 * 24 * 2 * out)  # [E, B, in]: E * B rows
+    if actor is not None:
+        policy_row = sum(2 * a * b for a, b in actor.shapes)
+        actor.forward = counting(actor.forward, policy_row)
+        actor.forward_perturbed = counting(actor.forward_perturbed, policy_row)
+    obs = np.array([[0.3, 0.95, -1.0], [-1.0, 0.0, 2.0]], dtype=np.float32)
+    model.predict(obs, episode_start=np.ones(2, dtype=bool))
+    assert sum(counted) == model.planner.flops(n_envs=2) > 0

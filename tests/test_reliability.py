@@ -1,8 +1,10 @@
 """Reliability: clear errors for bad input, NaN-safe planning, exact save/load/resume, determinism, interruptions."""
 
 import io
+import json
 import warnings
 import zipfile
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -16,11 +18,10 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
+from conftest import TINY
+
 from sb3_poplin import POPLIN
 
-TINY = dict(
-    horizon=4, population_size=16, num_elites=4, cem_iterations=2, ensemble_size=2, dynamics_net_arch=(16, 16), model_epochs=2
-)
 
 
 class SpaceEnv(gym.Env):
@@ -116,6 +117,60 @@ def test_loading_a_zip_with_a_corrupted_member(saved):
         POPLIN.load(saved / "bad_crc.zip")
 
 
+DATA = Path(__file__).resolve().parent / "data"
+LEGACY_OBS = np.array([[0.3, 0.95, -1.0], [-1.0, 0.0, 2.0]], dtype=np.float32)
+
+
+@pytest.mark.parametrize("variant", ["pets", "poplin-p"])
+def test_zips_of_release_0_1_0_load_and_keep_training(tmp_path, variant):
+    """Zips written by sb3_poplin 0.1.0 (tests/data/make_legacy_zips.py): same plans, state kept, training goes on."""
+    path = DATA / f"legacy-0.1.0-{variant}.zip"
+    with zipfile.ZipFile(path) as archive:
+        assert "mpc.pth" not in archive.namelist()  # the old layout: the planner state inside data
+    loaded = POPLIN.load(path, env=gym.make("Pendulum-v1"))
+    # the same plan as 0.1.0 made right after loading its own zip: generator and networks restored
+    planned = loaded.predict(LEGACY_OBS, episode_start=np.ones(2, dtype=bool))[0]
+    np.testing.assert_array_equal(planned, np.load(DATA / f"legacy-0.1.0-{variant}-mpc.npy"))
+    if variant == "poplin-p":  # saved in mid-episode: the 100 planned steps since the last distillation
+        assert len(loaded.distiller.planned) == 100 and all(r["keep"].all() for r in loaded.distiller.planned)
+    loaded.learn(200, reset_num_timesteps=False)
+    loaded.save(tmp_path / "resaved")
+    with zipfile.ZipFile(tmp_path / "resaved.zip") as archive:
+        assert "mpc.pth" in archive.namelist()
+        assert json.loads(archive.read("data")).get("_saved_planner_state") is None
+    assert POPLIN.load(tmp_path / "resaved").num_timesteps == loaded.num_timesteps
+
+
+def test_a_zip_without_any_planner_state_names_the_versions(tmp_path):
+    with zipfile.ZipFile(DATA / "legacy-0.1.0-pets.zip") as archive:
+        members = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(members["data"])
+    del data["_saved_planner_state"]
+    members["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(tmp_path / "stripped.zip", "w") as archive:
+        for name, content in members.items():
+            archive.writestr(name, content)
+    with pytest.raises(ValueError, match=r"sb3_poplin >= 0\.2\.0 \(mpc\.pth\).*sb3_poplin 0\.1\.0.*Save the agent again"):
+        POPLIN.load(tmp_path / "stripped.zip")
+
+
+def test_new_zips_hold_the_mpc_and_distiller_state(tmp_path):
+    model = POPLIN("poplin-p", "Pendulum-v1", seed=0, distillation="bc", distill_window=150, **TINY)
+    model.learn(1000, callback=StopAt(500))  # two fits with distillation, then 100 planned steps not yet distilled
+    model.save(tmp_path / "agent")
+    with zipfile.ZipFile(tmp_path / "agent.zip") as archive:
+        assert {"mpc.pth", "distiller.pth"} <= set(archive.namelist())
+    loaded = POPLIN.load(tmp_path / "agent")
+    assert model.distiller.data.keys() == loaded.distiller.data.keys() and len(model.distiller.data["states"]) == 150
+    for key, value in model.distiller.data.items():
+        assert th.equal(value, loaded.distiller.data[key]), key
+    assert len(loaded.distiller.planned) == 100
+    pets = POPLIN("pets", "Pendulum-v1", seed=0, **TINY)
+    pets.save(tmp_path / "pets")
+    with zipfile.ZipFile(tmp_path / "pets.zip") as archive:
+        assert "mpc.pth" in archive.namelist() and "distiller.pth" not in archive.namelist()
+
+
 # ---------------------------------------------------------------- NaN-safe planning
 def nan_model(model, fraction):
     """Make the dynamics produce NaN for a fraction of the rows of every forward pass."""
@@ -171,12 +226,13 @@ def test_all_diverged_falls_back_warns_once_and_counts(variant, tmp_path):
         model.control = "mpc"
     else:
         np.testing.assert_array_equal(action, np.zeros((2, 1)))  # the action-space centre
-    assert th.equal(state, th.zeros_like(state))  # the failed plan is not carried over
+    assert isinstance(state, np.ndarray) and not state.any()  # the failed plan is not carried over
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # warned once only
         model.predict(obs)
     model.set_logger(configure(str(tmp_path), ["csv"]))
-    model._record_plan_stats()
+    for key, value in model.mpc.pop_statistics().items():
+        model.logger.record(key, value)
     assert model.logger.name_to_value["plan/fallbacks"] == 4
 
 
@@ -241,8 +297,8 @@ def test_save_load_restores_everything(tmp_path):
         for key in a["state"]:
             for tensor_name, tensor in a["state"][key].items():
                 assert th.equal(tensor, b["state"][key][tensor_name]), (name, key, tensor_name)
-    assert th.equal(model._warm_start, loaded._warm_start)
-    assert th.equal(model._generator.get_state(), loaded._generator.get_state())
+    assert th.equal(model.mpc.warm_start, loaded.mpc.warm_start)
+    assert th.equal(model.mpc.generator.get_state(), loaded.mpc.generator.get_state())
     # same warm start and same random state: the next plan is identical without reseeding
     np.testing.assert_array_equal(model.predict(obs)[0], loaded.predict(obs)[0])
 
@@ -313,8 +369,8 @@ def test_interrupted_training_leaves_a_usable_model(tmp_path, error):
     model.save(tmp_path / "agent")
     # stopped in mid-episode: the planned steps since the last distillation are saved, not dropped
     loaded = POPLIN.load(tmp_path / "agent")
-    assert len(model._planned) == len(loaded._planned) == 100  # steps 201-300, recorded when planned
-    for record, restored in zip(model._planned, loaded._planned, strict=True):
+    assert len(model.distiller.planned) == len(loaded.distiller.planned) == 100  # steps 201-300, recorded when planned
+    for record, restored in zip(model.distiller.planned, loaded.distiller.planned, strict=True):
         assert record.keys() == restored.keys()
         assert all(th.equal(record[key], restored[key]) for key in record)
     model.learn(300, reset_num_timesteps=False)

@@ -5,6 +5,8 @@ import pytest
 import torch as th
 from torch.func import functional_call
 
+from conftest import TINY
+
 from sb3_poplin import POPLIN
 from sb3_poplin.callbacks import ControlModesEvalCallback
 from sb3_poplin.distillation import average_perturbation, behaviour_cloning, gan_distillation, saturated_fraction
@@ -12,9 +14,6 @@ from sb3_poplin.dynamics import ProbabilisticEnsemble
 from sb3_poplin.planning import MPCPlanner, PolicyActionNoise, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, PolicyNetwork
 
-TINY = dict(
-    horizon=5, population_size=20, num_elites=4, cem_iterations=2, ensemble_size=2, dynamics_net_arch=(16, 16), model_epochs=2
-)
 CONFIGS = [
     dict(policy="poplin-a", proposal="init"),
     dict(policy="poplin-a", proposal="replan"),
@@ -106,7 +105,7 @@ def test_parameter_noise_shift_semantics():
     assert uni.dim == w
     mean = th.randn(2, w)
     assert th.equal(uni.shift(mean), mean)  # one shared block, carried over unchanged
-    with pytest.raises(ValueError, match=r"Unknown POPLIN-P noise 'both'; accepted values: \['sep', 'uni'\]"):
+    with pytest.raises(ValueError, match=r"Unknown noise 'both'; accepted values: \['sep', 'uni'\]"):
         make_planner(PolicyParameterNoise, noise="both")
 
 
@@ -129,7 +128,7 @@ def test_action_noise_shift_and_proposals():
     replan, _, _ = make_planner(PolicyActionNoise, proposal="replan")
     assert replan.prepare(obs, planner) is None
     assert th.allclose(replan.actions(z + 0.1, 2, states, None), (policy.act(states) + 0.1).clamp(-1, 1))
-    with pytest.raises(ValueError, match="Unknown POPLIN-A proposal"):
+    with pytest.raises(ValueError, match="Unknown proposal 'open'"):
         make_planner(PolicyActionNoise, proposal="open")
 
 
@@ -214,24 +213,25 @@ def test_gan_distillation_moves_the_policy_towards_the_planned_actions():
 
 def test_only_planned_steps_are_distilled(monkeypatch):
     seen = []
-    import sb3_poplin.poplin as poplin_module
+    import sb3_poplin.distillation as distillation_module
 
-    original = poplin_module.behaviour_cloning
+    original = distillation_module.behaviour_cloning
 
     def spy(policy, optimizer, states, targets, **kwargs):
         seen.append(states.shape[0])
         return original(policy, optimizer, states, targets, **kwargs)
 
-    monkeypatch.setattr(poplin_module, "behaviour_cloning", spy)
+    monkeypatch.setattr(distillation_module, "behaviour_cloning", spy)
     model = POPLIN("poplin-a", "Pendulum-v1", seed=0, distill_imagined=False, distill_window=None, **TINY)
     model.learn(600)  # a random episode, then two planned ones; a fit after each
     assert seen == [200, 200]  # fit 1: nothing planned yet; fits 2 and 3: that episode's 200 planned states
+    assert model.distiller.data == {}  # without a window nothing is kept between distillations (nor saved)
     seen.clear()
     model = POPLIN("poplin-a", "Pendulum-v1", seed=0, distill_imagined=False, distill_window=300, **TINY)
     model.learn(800)
     assert seen == [200, 300, 300]  # the most recent 300 planned steps
     # the executed actions (the buffer holds them after a scale round trip)
-    assert th.allclose(model._distill_data["actions"], th.as_tensor(model.replay_buffer.actions[500:800, 0]), atol=1e-6)
+    assert th.allclose(model.distiller.data["actions"], th.as_tensor(model.replay_buffer.actions[500:800, 0]), atol=1e-6)
     model = POPLIN("poplin-a", "Pendulum-v1", seed=0, **TINY)  # BC-AI: plus the 4 elites of every planned step
     seen.clear()
     model.learn(400)
@@ -266,12 +266,12 @@ def test_variant_trains_plans_and_saves(tmp_path, config):
 @pytest.mark.parametrize(
     "kwargs, message",
     [
-        (dict(policy="poplin-a", distillation="avg"), r"Unknown distillation 'avg' for 'poplin-a'; accepted values: \['bc'\]"),
+        (dict(policy="poplin-a", distillation="avg"), r"Unknown distillation 'avg'; accepted values: \['bc'\]"),
         (dict(policy="poplin-p", distillation="dagger"), r"accepted values: \['avg', 'bc', 'gan'\]"),
         (dict(policy="pets", distillation="bc"), "has no policy network to distill into"),
         (dict(policy="pets", policy_net_arch=[8]), "leave policy_net_arch=None"),
-        (dict(policy="poplin-a", proposal="closed"), r"Unknown proposal 'closed' \(POPLIN-A\)"),
-        (dict(policy="poplin-p", noise="shared"), r"Unknown noise 'shared' \(POPLIN-P\)"),
+        (dict(policy="poplin-a", proposal="closed"), r"Unknown proposal 'closed'; accepted values: \['init', 'replan'\]"),
+        (dict(policy="poplin-p", noise="shared"), r"Unknown noise 'shared'; accepted values: \['sep', 'uni'\]"),
         (dict(policy="pets", control="policy"), "control='policy' is not available"),
     ],
 )
@@ -318,5 +318,5 @@ def test_recorded_distillation_targets_carry_no_graph():
     model._collecting = True
     model.predict(np.array([1.0, 0.0, 0.0], dtype=np.float32))
     model._collecting = False
-    for key, value in model._planned[-1].items():
+    for key, value in model.distiller.planned[-1].items():
         assert not value.requires_grad and value.grad_fn is None, key

@@ -15,7 +15,8 @@ import optuna
 import pytest
 import yaml
 
-from sb3_poplin import zoo
+from sb3_poplin import presets, zoo
+from sb3_poplin.tasks import env_util
 from sb3_poplin.envs import ENV_IDS
 from sb3_poplin.poplin import POPLIN
 
@@ -78,7 +79,7 @@ def test_train_writes_the_zoo_files(trained: Path) -> None:
     config = dict(load_yaml(run_dir / "Pendulum-v1" / "config.yml"))
     assert config["policy"] == "poplin-p" and config["horizon"] == 5 and config["train_freq"] == [1, "episode"]
     args = dict(load_yaml(run_dir / "Pendulum-v1" / "args.yml"))
-    assert args["conf_file"] == str(zoo.config_path("poplin"))
+    assert args["conf_file"] == str(presets.config_path("poplin"))
 
 
 def test_enjoy_loads_and_plays(trained: Path) -> None:
@@ -104,36 +105,36 @@ def test_plots_writes_png(trained: Path, tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("algo", MODEL_FREE)
 def test_packaged_v5_settings_are_used(algo: str, capsys: pytest.CaptureFixture[str]) -> None:
-    budgets = zoo.load_config(zoo.config_path("poplin"))
+    budgets = presets.load_config(presets.config_path("poplin"))
     for env_id in TASKS:
         hyperparams = zoo.read_hyperparameters(algo, env_id)
         assert hyperparams["n_timesteps"] == budgets[env_id]["n_timesteps"]
     output = capsys.readouterr().out
     assert "Using 'default' hyperparameters" not in output
-    assert f"Loading hyperparameters from: {zoo.config_path(algo)}" in output
+    assert f"Loading hyperparameters from: {presets.config_path(algo)}" in output
 
 
 def test_hyperparameter_files_share_tasks_and_budgets() -> None:
-    paper = zoo.load_config(zoo.config_path("poplin"))
+    paper = presets.load_config(presets.config_path("poplin"))
     assert sorted(paper) == sorted(TASKS)
-    assert sorted(zoo.load_config(zoo.config_path("poplin", "cpu"))) == sorted(TASKS)
+    assert sorted(presets.load_config(presets.config_path("poplin", "cpu"))) == sorted(TASKS)
     for algo in MODEL_FREE:
-        config = zoo.load_config(zoo.config_path(algo))
+        config = presets.load_config(presets.config_path(algo))
         assert sorted(config) == sorted(TASKS), algo
         assert {env: entry["n_timesteps"] for env, entry in config.items()} == {
             env: entry["n_timesteps"] for env, entry in paper.items()
         }, algo
 
 
-@pytest.mark.parametrize("budget", zoo.BUDGETS)
+@pytest.mark.parametrize("budget", presets.BUDGETS)
 def test_poplin_entries_build_and_keep_the_task_env_kwargs(budget: str) -> None:
     from sb3_poplin.tasks import has_task, make_task
 
-    for env_id, entry in zoo.load_config(zoo.config_path("poplin", budget)).items():
+    for env_id, entry in presets.load_config(presets.config_path("poplin", budget)).items():
         assert entry["policy"] in POPLIN.policy_aliases and entry["train_freq"] == [1, "episode"]
         if has_task(env_id):
             assert make_task(env_id).env_kwargs.items() <= entry.get("env_kwargs", {}).items(), env_id
-    settings = dict(zoo.load_config(zoo.config_path("poplin", budget))["Pendulum-v1"])
+    settings = dict(presets.load_config(presets.config_path("poplin", budget))["Pendulum-v1"])
     del settings["n_timesteps"]
     settings["train_freq"] = tuple(settings["train_freq"])  # as the zoo passes it
     for variant in POPLIN.policy_aliases:  # a valid set of POPLIN arguments, and one override switches the variant
@@ -155,22 +156,23 @@ def test_env_kwargs_reach_the_eval_env_and_args() -> None:
 
 
 def test_task_env_kwargs_are_added(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(zoo, "has_task", lambda env_id: True)
-    monkeypatch.setattr(zoo, "make_task", lambda env_id: SimpleNamespace(env_kwargs={"keep_x": True}))
-    assert zoo.task_env_kwargs("Any-v0", None) == {"keep_x": True}
-    assert zoo.task_env_kwargs("Any-v0", {"other": 1}) == {"other": 1, "keep_x": True}
+    monkeypatch.setattr(env_util, "has_task", lambda env_id: True)
+    monkeypatch.setattr(env_util, "make_task", lambda env_id: SimpleNamespace(env_kwargs={"keep_x": True}))
+    assert env_util.task_env_kwargs("Any-v0", None) == {"keep_x": True}
+    assert env_util.task_env_kwargs("Any-v0", {"other": 1}) == {"other": 1, "keep_x": True}
     with pytest.warns(UserWarning, match="reward function assumes"):
-        assert zoo.task_env_kwargs("Any-v0", {"keep_x": False}) == {"keep_x": False}
+        assert env_util.task_env_kwargs("Any-v0", {"keep_x": False}) == {"keep_x": False}
 
 
 def test_default_conf_file() -> None:
-    assert zoo.train_args(["--algo", "sac", "--env", "HalfCheetah-v5"])[-2:] == ["--conf-file", str(zoo.config_path("sac"))]
-    assert zoo.train_args(["--algo=poplin", "--env=Foo-v0"])[-1] == str(zoo.config_path("poplin"))
+    sac = str(presets.config_path("sac"))
+    assert zoo.train_args(["--algo", "sac", "--env", "HalfCheetah-v5"])[-2:] == ["--conf-file", sac]
+    assert zoo.train_args(["--algo=poplin", "--env=Foo-v0"])[-1] == str(presets.config_path("poplin"))
     assert zoo.train_args(["--algo", "sac", "--env", "HalfCheetah-v4"]) == ["--algo", "sac", "--env", "HalfCheetah-v4"]
     given = ["--algo", "poplin", "--env", "Pendulum-v1", "-conf", "mine.yml"]
     assert zoo.train_args(given) == given
     with pytest.raises(ValueError, match="budget"):
-        zoo.config_path("poplin", "gpu")
+        presets.config_path("poplin", "gpu")
 
 
 @pytest.mark.parametrize("variant", [*POPLIN.policy_aliases, None])

@@ -49,6 +49,11 @@ class TaskSpec:
 _REGISTRY: dict[str, TaskSpec] = {}
 
 
+def squared_norm(action: th.Tensor) -> th.Tensor:
+    """:return: ``sum(action^2)`` over the last dimension (the control cost of most tasks, before its weight)"""
+    return (action**2).sum(dim=-1)
+
+
 def register_task(spec: TaskSpec, overwrite: bool = False) -> None:
     """
     Register a :class:`TaskSpec` under its ``env_id``.
@@ -115,14 +120,29 @@ def make_task(env_id: str, observation_space: gym.Space | None = None) -> TaskSp
 
 # Built-in tasks register themselves on import.
 from sb3_poplin.tasks import classic, mujoco, paper  # noqa: E402, F401
+from sb3_poplin.tasks.env_util import (  # noqa: E402
+    check_spaces,
+    env_id,
+    make_env,
+    max_episode_steps,
+    resolve_task,
+    task_env_kwargs,
+)
 
 __all__ = [
     "RewardFn",
     "TaskSpec",
     "TerminationFn",
     "check_observation_space",
+    "check_spaces",
+    "env_id",
     "has_task",
+    "make_env",
     "make_task",
+    "max_episode_steps",
     "register_task",
     "registered_tasks",
+    "resolve_task",
+    "squared_norm",
+    "task_env_kwargs",
 ]

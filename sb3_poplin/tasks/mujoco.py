@@ -12,14 +12,9 @@ from __future__ import annotations
 
 import torch as th
 
-from sb3_poplin.tasks import TaskSpec, register_task
+from sb3_poplin.tasks import TaskSpec, register_task, squared_norm
 
 KEEP_POSITIONS = {"exclude_current_positions_from_observation": False}
-
-
-def _squared_norm(action: th.Tensor) -> th.Tensor:
-    """:return: ``sum(action^2)`` over the last dimension"""
-    return (action**2).sum(dim=-1)
 
 
 def _not_finite(next_obs: th.Tensor) -> th.Tensor:
@@ -53,7 +48,7 @@ HALF_CHEETAH_CTRL_COST = 0.1
 def half_cheetah_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> th.Tensor:
     """HalfCheetah-v5: ``(x' - x) / dt - 0.1 |a|^2``."""
     forward = (next_obs[..., HALF_CHEETAH_X] - obs[..., HALF_CHEETAH_X]) / HALF_CHEETAH_DT
-    return forward - HALF_CHEETAH_CTRL_COST * _squared_norm(action)
+    return forward - HALF_CHEETAH_CTRL_COST * squared_norm(action)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -88,7 +83,7 @@ def hopper_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> th.
     """Hopper-v5: ``(x' - x) / dt + 1[healthy'] - 0.001 |a|^2``."""
     forward = (next_obs[..., HOPPER_X] - obs[..., HOPPER_X]) / HOPPER_DT
     healthy = hopper_healthy(next_obs).to(next_obs.dtype)
-    return forward + healthy - HOPPER_CTRL_COST * _squared_norm(action)
+    return forward + healthy - HOPPER_CTRL_COST * squared_norm(action)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -115,7 +110,7 @@ def walker2d_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> t
     """Walker2d-v5: ``(x' - x) / dt + 1[healthy'] - 0.001 |a|^2``."""
     forward = (next_obs[..., WALKER_X] - obs[..., WALKER_X]) / WALKER_DT
     healthy = walker2d_healthy(next_obs).to(next_obs.dtype)
-    return forward + healthy - WALKER_CTRL_COST * _squared_norm(action)
+    return forward + healthy - WALKER_CTRL_COST * squared_norm(action)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -128,7 +123,7 @@ SWIMMER_CTRL_COST = 1e-4
 def swimmer_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> th.Tensor:
     """Swimmer-v5: ``(x' - x) / dt - 1e-4 |a|^2``."""
     forward = (next_obs[..., SWIMMER_X] - obs[..., SWIMMER_X]) / SWIMMER_DT
-    return forward - SWIMMER_CTRL_COST * _squared_norm(action)
+    return forward - SWIMMER_CTRL_COST * squared_norm(action)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -167,7 +162,7 @@ def ant_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> th.Ten
     forward = (next_obs[..., ANT_X] - obs[..., ANT_X]) / ANT_DT
     healthy = ant_healthy(next_obs).to(next_obs.dtype)
     contact = (next_obs[..., ANT_CONTACT_START:] ** 2).sum(dim=-1)
-    return forward + healthy - ANT_CTRL_COST * _squared_norm(action) - ANT_CONTACT_COST * contact
+    return forward + healthy - ANT_CTRL_COST * squared_norm(action) - ANT_CONTACT_COST * contact
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -222,7 +217,7 @@ def reacher_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> th
     Reacher-v5: ``-|fingertip' - target| - |a|^2``, on the state *after* the step (v5 changed this
     from v4). Fingertip and target are both at height 0.01, so the planar offset in the obs is enough.
     """
-    return -th.linalg.vector_norm(next_obs[..., REACHER_DELTA], dim=-1) - _squared_norm(action)
+    return -th.linalg.vector_norm(next_obs[..., REACHER_DELTA], dim=-1) - squared_norm(action)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -234,7 +229,7 @@ def pusher_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> th.
     """Pusher-v5: ``-0.5 |object' - tip'| - |object' - goal'| - 0.1 |a|^2``, on the state after the step."""
     near = th.linalg.vector_norm(next_obs[..., PUSHER_OBJECT] - next_obs[..., PUSHER_TIP], dim=-1)
     dist = th.linalg.vector_norm(next_obs[..., PUSHER_OBJECT] - next_obs[..., PUSHER_GOAL], dim=-1)
-    return -0.5 * near - dist - 0.1 * _squared_norm(action)
+    return -0.5 * near - dist - 0.1 * squared_norm(action)
 
 
 for _spec in (

@@ -14,12 +14,7 @@ import torch as th
 
 from sb3_poplin.envs.acrobot_swingup import ACROBOT_COS1, ACROBOT_COS2, ACROBOT_SIN1, ACROBOT_SIN2
 from sb3_poplin.envs.cartpole_swingup import CARTPOLE_COS, CARTPOLE_X, CARTPOLE_X_COST
-from sb3_poplin.tasks import TaskSpec, register_task
-
-
-def _squared_norm(action: th.Tensor) -> th.Tensor:
-    """:return: ``sum(action^2)`` over the last dimension"""
-    return (action**2).sum(dim=-1)
+from sb3_poplin.tasks import TaskSpec, register_task, squared_norm
 
 
 # sb3_poplin/PETSCheetah-v0: obs = [(x' - x) / dt, qpos[1:] (8), qvel (9)]
@@ -29,7 +24,7 @@ PETS_CHEETAH_CTRL_COST = 0.1
 
 def pets_cheetah_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> th.Tensor:
     """PETS Cheetah: ``obs'[0] - 0.1 |a|^2``, the forward velocity being the first observation entry."""
-    return next_obs[..., PETS_CHEETAH_VELOCITY] - PETS_CHEETAH_CTRL_COST * _squared_norm(action)
+    return next_obs[..., PETS_CHEETAH_VELOCITY] - PETS_CHEETAH_CTRL_COST * squared_norm(action)
 
 
 def cartpole_swingup_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> th.Tensor:
@@ -54,7 +49,7 @@ FIXED_SWIMMER_CTRL_COST = 1e-4
 
 def fixed_swimmer_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> th.Tensor:
     """Fixed Swimmer: ``obs'[-1] - 1e-4 |a|^2``, the head's x velocity being the last observation entry."""
-    return next_obs[..., FIXED_SWIMMER_HEAD_VELOCITY] - FIXED_SWIMMER_CTRL_COST * _squared_norm(action)
+    return next_obs[..., FIXED_SWIMMER_HEAD_VELOCITY] - FIXED_SWIMMER_CTRL_COST * squared_norm(action)
 
 
 # No-termination locomotion (Hopper, Walker2d: obs = [x, z, ...]; Ant: obs = [x, y, z, ...]), x kept in obs[0].
@@ -91,7 +86,7 @@ class ShapedLocomotionReward:
         """
         forward = (next_obs[..., 0] - obs[..., 0]) / self.dt
         height_cost = SHAPED_HEIGHT_COST * (next_obs[..., self.z_index] - self.target_height) ** 2
-        return forward - height_cost - SHAPED_CTRL_COST * _squared_norm(action) + SHAPED_ALIVE_BONUS
+        return forward - height_cost - SHAPED_CTRL_COST * squared_norm(action) + SHAPED_ALIVE_BONUS
 
 
 # dt = timestep * frame_skip of the v5 models: Hopper, Walker2d 0.002 * 4, Ant 0.01 * 5

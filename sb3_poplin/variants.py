@@ -1,0 +1,325 @@
+"""
+The variants, in one table: what each searches, with which optimizer and defaults, what it distills; the one place
+where settings are validated and every ``None`` default is resolved; the named configurations of the paper
+(``"poplin-p/sep/avg"``, ...); and the planner built from a variant and its settings.
+
+A variant is only a search space (:mod:`sb3_poplin.planning`) plus defaults: no other module branches on its name.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import torch as th
+from gymnasium import spaces
+
+from sb3_poplin.common import check_choice, check_positive_int
+from sb3_poplin.dynamics import PROPAGATIONS, ProbabilisticEnsemble
+from sb3_poplin.planning import (
+    CEM,
+    ActionSequences,
+    MPCController,
+    MPCPlanner,
+    PolicyActionNoise,
+    PolicyParameterNoise,
+    RandomShooting,
+    SearchSpace,
+)
+from sb3_poplin.policies import PolicyNetwork
+from sb3_poplin.tasks import RewardFn, TerminationFn
+
+CONTROLS = ("mpc", "policy")
+GAN_DISCRIMINATOR_NET_ARCH = (64, 64)
+SearchSpaceFactory = Callable[[Mapping[str, Any], int, "PolicyNetwork | None"], SearchSpace]
+
+
+@dataclass(frozen=True)
+class Variant:
+    """
+    One planner variant.
+
+    :param name: the ``policy`` name POPLIN takes
+    :param search_space: ``(settings, action_dim, policy network or None) -> SearchSpace``
+    :param optimizer: ``"cem"`` or ``"rs"`` (random shooting: one round of uniform samples)
+    :param init_var: default initial CEM variance of the search space
+    :param policy_net_arch: default hidden widths of the policy network; ``None``: the variant has none
+    :param distillations: accepted distillations, the default first (none without a policy network)
+    :param distill_imagined: default of ``distill_imagined`` (the final elites' first steps distilled too)
+    """
+
+    name: str
+    search_space: SearchSpaceFactory
+    optimizer: str
+    init_var: float
+    policy_net_arch: tuple[int, ...] | None
+    distillations: tuple[str, ...] = ()
+    distill_imagined: bool = False
+
+    @property
+    def has_policy(self) -> bool:
+        """Whether the variant has a policy network (and so a policy-control mode and a distillation)."""
+        return self.policy_net_arch is not None
+
+
+def _actions(settings: Mapping[str, Any], action_dim: int, policy: PolicyNetwork | None) -> SearchSpace:
+    return ActionSequences(settings["horizon"], action_dim, settings["init_var"])
+
+
+def _action_noise(settings: Mapping[str, Any], action_dim: int, policy: PolicyNetwork | None) -> SearchSpace:
+    assert policy is not None
+    return PolicyActionNoise(settings["horizon"], action_dim, settings["init_var"], policy, settings["proposal"])
+
+
+def _parameter_noise(settings: Mapping[str, Any], action_dim: int, policy: PolicyNetwork | None) -> SearchSpace:
+    assert policy is not None
+    return PolicyParameterNoise(settings["horizon"], action_dim, settings["init_var"], policy, settings["noise"])
+
+
+# the paper's demo settings: initial variance in scaled action units (0.25) or parameter units (0.1)
+VARIANTS: dict[str, Variant] = {
+    variant.name: variant
+    for variant in (
+        Variant("pets", _actions, "cem", 0.25, None),
+        Variant("rs", _actions, "rs", 0.25, None),
+        Variant("poplin-a", _action_noise, "cem", 0.25, (64, 64), ("bc",), distill_imagined=True),  # BC-AI
+        Variant("poplin-p", _parameter_noise, "cem", 0.1, (32,), ("avg", "bc", "gan")),
+    )
+}
+POLICY_VARIANTS = tuple(name for name, variant in VARIANTS.items() if variant.has_policy)
+
+# the paper's configurations by name: POPLIN keyword arguments
+NAMED_CONFIGURATIONS: dict[str, dict[str, Any]] = {
+    "pets": dict(policy="pets"),
+    "rs": dict(policy="rs"),
+    "poplin-a/init": dict(policy="poplin-a", proposal="init"),
+    "poplin-a/replan": dict(policy="poplin-a", proposal="replan"),
+    **{
+        f"poplin-p/{noise}/{method}": dict(policy="poplin-p", noise=noise, distillation=method)
+        for noise in ("sep", "uni")
+        for method in VARIANTS["poplin-p"].distillations
+    },
+}
+
+
+def configuration(name: str) -> dict[str, Any]:
+    """
+    :param name: a named configuration, e.g. ``"poplin-p/sep/avg"``
+    :return: its POPLIN keyword arguments (a new dict)
+    """
+    check_choice("configuration", name, list(NAMED_CONFIGURATIONS))
+    return dict(NAMED_CONFIGURATIONS[name])
+
+
+def variant(name: str) -> Variant:
+    """The :class:`Variant` of a ``policy`` name, or a clear error."""
+    if name not in VARIANTS:
+        raise ValueError(f"Unknown POPLIN variant {name!r}; accepted values: {list(VARIANTS)}")
+    return VARIANTS[name]
+
+
+def resolve_settings(name: str, settings: dict[str, Any]) -> dict[str, Any]:
+    """
+    Validate POPLIN's settings for a variant and resolve every ``None`` default that depends on it. Choices that
+    belong to one part (the CEM's sampling, the search spaces' ``proposal`` and ``noise``, the planner's dtype and
+    batch bound) are checked by that part when the planner is built.
+
+    :param name: the variant
+    :param settings: POPLIN's keyword arguments of :data:`SETTINGS`, as given
+    :return: a new dict with the defaults filled in
+    :raises ValueError: naming the setting, the value and what is accepted
+    """
+    spec = variant(name)
+    s = dict(settings)
+    for key in ("policy_net_arch", "dynamics_net_arch"):
+        s[key] = None if s[key] is None else list(s[key])
+    _check_ranges(s, spec)
+    check_choice("propagation", s["propagation"], PROPAGATIONS)
+    if s["propagation"] != "expectation" and (s["num_particles"] < 1 or s["num_particles"] % s["ensemble_size"]):
+        raise ValueError(
+            f"num_particles ({s['num_particles']}) must be a positive multiple of ensemble_size ({s['ensemble_size']}) "
+            "so that each member gets the same number of particles"
+        )
+    check_control(name, s["control"])
+    if not spec.has_policy:
+        if s["distillation"] is not None:
+            raise ValueError(
+                f"The {name!r} variant has no policy network to distill into; got distillation={s['distillation']!r}. "
+                "Leave distillation=None, or use 'poplin-a' / 'poplin-p'."
+            )
+        if s["policy_net_arch"] is not None:
+            raise ValueError(f"The {name!r} variant has no policy network: leave policy_net_arch=None.")
+    else:
+        if s["distillation"] is None:
+            s["distillation"] = spec.distillations[0]
+        check_choice("distillation", s["distillation"], spec.distillations)
+        if s["policy_net_arch"] is None:
+            s["policy_net_arch"] = list(spec.policy_net_arch or ())
+    if s["distill_imagined"] is None:
+        s["distill_imagined"] = spec.distill_imagined
+    if s["policy_epochs"] is None:
+        s["policy_epochs"] = 40 if s["distillation"] == "gan" else 100
+    if s["init_var"] is None:
+        s["init_var"] = spec.init_var
+    return s
+
+
+def _check_ranges(s: dict[str, Any], spec: Variant) -> None:
+    """The numeric settings' ranges."""
+    for key in ("horizon", "population_size", "cem_iterations", "ensemble_size", "model_epochs", "model_batch_size"):
+        check_positive_int(key, s[key])
+    check_positive_int("policy_batch_size", s["policy_batch_size"])
+    check_positive_int("policy_epochs", s["policy_epochs"], optional=True)
+    check_positive_int("distill_window", s["distill_window"], optional=True)
+    if spec.optimizer == "cem" and not 1 <= s["num_elites"] <= s["population_size"]:
+        raise ValueError(f"num_elites must be between 1 and population_size ({s['population_size']}), got {s['num_elites']}")
+    if not 0.0 <= s["cem_alpha"] < 1.0:
+        raise ValueError(f"cem_alpha must be in [0, 1), got {s['cem_alpha']}")
+    if s["init_var"] is not None and not s["init_var"] > 0:
+        raise ValueError(f"init_var must be > 0 (or None for the variant default), got {s['init_var']}")
+    if not 0.0 <= s["holdout_ratio"] < 1.0:
+        raise ValueError(f"holdout_ratio must be in [0, 1), got {s['holdout_ratio']}")
+    if not 0.0 < s["avg_step_size"] <= 1.0:
+        raise ValueError(f"avg_step_size must be in (0, 1] (1 = the paper's Avg), got {s['avg_step_size']}")
+
+
+def check_control(name: str, control: str) -> None:
+    """``control`` must be a control mode the variant has."""
+    check_choice("control", control, CONTROLS)
+    if control == "policy" and not variant(name).has_policy:
+        raise ValueError(
+            f"The {name!r} variant has no policy network, so control='policy' is not available: "
+            "use control='mpc', or a 'poplin-a' / 'poplin-p' agent."
+        )
+
+
+def build_planner(
+    name: str,
+    settings: Mapping[str, Any],
+    dynamics: ProbabilisticEnsemble,
+    policy: PolicyNetwork | None,
+    reward_fn: RewardFn | None,
+    termination_fn: TerminationFn | None,
+    action_space: spaces.Box,
+    device: th.device | str,
+) -> MPCPlanner:
+    """
+    The planner of a variant: its search space, its optimizer, and the rollout through the model.
+
+    :param name: the variant
+    :param settings: resolved settings (:func:`resolve_settings`), or an agent's (:func:`settings_of`)
+    :param dynamics: the learned ensemble
+    :param policy: the policy network (variants with one)
+    :param reward_fn: the task reward, ``None`` when the model predicts it
+    :param termination_fn: the task termination, or ``None``
+    :param action_space: the env's Box action space
+    :param device: where to plan
+    """
+    spec = variant(name)
+    optimizer: CEM | RandomShooting
+    if spec.optimizer == "rs":
+        optimizer = RandomShooting(settings["population_size"])
+    else:
+        optimizer = CEM(
+            settings["population_size"],
+            settings["num_elites"],
+            settings["cem_iterations"],
+            settings["cem_alpha"],
+            settings["cem_sampling"],
+        )
+    return MPCPlanner(
+        model=dynamics,
+        search_space=spec.search_space(settings, int(action_space.shape[0]), policy),
+        optimizer=optimizer,
+        reward_fn=reward_fn,
+        termination_fn=termination_fn,
+        propagation=settings["propagation"],
+        num_particles=settings["num_particles"],
+        action_low=th.as_tensor(action_space.low, dtype=th.float32, device=device),
+        action_high=th.as_tensor(action_space.high, dtype=th.float32, device=device),
+        dtype=settings["planning_dtype"],
+        max_batch_rows=settings["max_batch_rows"],
+    )
+
+
+# every setting a planner reads
+PLANNER_SETTINGS = (
+    "horizon",
+    "population_size",
+    "num_elites",
+    "cem_iterations",
+    "cem_alpha",
+    "init_var",
+    "cem_sampling",
+    "proposal",
+    "noise",
+    "propagation",
+    "num_particles",
+    "planning_dtype",
+    "max_batch_rows",
+)
+
+
+# POPLIN's settings that resolve_settings checks and resolves (its other arguments go to SB3 or the task)
+SETTINGS = (
+    *PLANNER_SETTINGS,
+    "distillation",
+    "distill_imagined",
+    "distill_window",
+    "avg_step_size",
+    "policy_net_arch",
+    "policy_learning_rate",
+    "policy_epochs",
+    "policy_batch_size",
+    "ensemble_size",
+    "dynamics_net_arch",
+    "model_epochs",
+    "model_batch_size",
+    "model_learning_rate",
+    "holdout_ratio",
+    "learned_reward",
+    "control",
+)
+
+
+def settings_of(agent: Any) -> dict[str, Any]:
+    """The planner settings of a POPLIN agent (its attributes of those names)."""
+    return {key: getattr(agent, key) for key in PLANNER_SETTINGS}
+
+
+def replanner(agent: Any, name: str, seed: int | None = 0, **overrides: Any) -> MPCController:
+    """
+    An MPC controller that plans with a trained agent's model, task and policy network but searches as another
+    variant (e.g. PETS's action search on a POPLIN-P agent's model): the planner settings are the agent's, except
+    ``overrides``; ``init_var`` falls back to the other variant's default.
+
+    :param agent: a POPLIN agent
+    :param name: the variant to search as (``"poplin-a"``/``"poplin-p"`` need the agent's policy network)
+    :param seed: seed of the controller's generator
+    :param overrides: planner settings to change (see :data:`PLANNER_SETTINGS`)
+    """
+    unknown = set(overrides) - set(PLANNER_SETTINGS)
+    if unknown:
+        raise ValueError(f"replanner takes planner settings only, got {sorted(unknown)}; accepted: {list(PLANNER_SETTINGS)}")
+    spec = variant(name)
+    actor = agent.policy.actor
+    if spec.has_policy and actor is None:
+        raise ValueError(f"The agent has no policy network, so it cannot plan as {name!r}: use 'pets' or 'rs'.")
+    settings = settings_of(agent)
+    if name != agent.variant:
+        settings["init_var"] = spec.init_var
+    settings.update(overrides)
+    planner = build_planner(
+        name,
+        settings,
+        agent.policy.dynamics,
+        actor,
+        agent.planner.reward_fn,
+        agent.planner.termination_fn,
+        agent.action_space,
+        agent.device,
+    )
+    controller = MPCController(planner, agent.device)
+    controller.seed(seed)
+    return controller
