@@ -1,0 +1,170 @@
+"""
+``python -m sb3_poplin.analysis COMMAND``: the paper's analyses on a saved agent or an rl-zoo3 log folder.
+
+    python -m sb3_poplin.analysis surface --model agent.zip --env HalfCheetah-v5 --output out/
+    python -m sb3_poplin.analysis popsize --model agent.zip --env HalfCheetah-v5 --populations 100 200 500 --output out/
+    python -m sb3_poplin.analysis control --log-folder logs --env Pendulum-v1 --output out/
+    python -m sb3_poplin.analysis model-error --model agent.zip --env HalfCheetah-v5
+
+Each command prints a table and writes it (``.md`` and ``.json``) with its figures into ``--output``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch as th
+
+from sb3_poplin.analysis.control import control_curves, plot_control_curves
+from sb3_poplin.analysis.model_error import mpc_episode, model_error
+from sb3_poplin.analysis.popsize import plot_population_sweep, population_sweep
+from sb3_poplin.analysis.surface import plot_surface, reward_surface
+from sb3_poplin.poplin import POPLIN
+from sb3_poplin.tasks import make_env
+from sb3_poplin.variants import replanner
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A markdown table (floats with 4 significant digits)."""
+
+    def cell(value: Any) -> str:
+        return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def write_report(output: str, name: str, table: str, data: Any, command: str) -> None:
+    """Print the table and write ``<name>.md`` (the command and the table) and ``<name>.json`` into ``output``."""
+    print(table)
+    with open(os.path.join(output, f"{name}.md"), "w") as file:
+        file.write(f"`{command}`\n\n{table}\n")
+    with open(os.path.join(output, f"{name}.json"), "w") as file:
+        json.dump(data, file, indent=2)
+
+
+def load_agent(path: str, env_id: str) -> POPLIN:
+    """A saved agent on the CPU, its env made with the task's env kwargs."""
+    return POPLIN.load(path, env=make_env(env_id), device="cpu")
+
+
+def real_state(agent: POPLIN, env_id: str, steps: int, seed: int) -> th.Tensor:
+    """The observation after ``steps`` MPC steps of the saved agent from ``reset(seed=seed)`` (0: the start state)."""
+    env = make_env(env_id)
+    if steps == 0:
+        return th.as_tensor(env.reset(seed=seed)[0], dtype=th.float32)
+    return th.as_tensor(mpc_episode(agent.mpc, env, steps, seed).obs[-1], dtype=th.float32)
+
+
+def methods_of(agent: POPLIN) -> list[str]:
+    """PETS's action search, and POPLIN-A's and POPLIN-P's where the agent has a policy network."""
+    return ["pets", "poplin-a", "poplin-p"] if agent.policy.actor is not None else ["pets"]
+
+
+def surface_command(args: argparse.Namespace, command: str) -> None:
+    agent = load_agent(args.model, args.env)
+    obs = real_state(agent, args.env, args.state_from_episode, args.seed)
+    rows, data = [], {}
+    for method in args.methods or methods_of(agent):
+        surface = reward_surface(replanner(agent, method, seed=args.seed), method, obs, grid=args.grid)
+        plot_surface(surface, os.path.join(args.output, f"surface_{method}.png"))
+        stats = surface.stats
+        keys = ("roughness", "local_maxima", "explained_variance_1", "explained_variance_2", "planned_return")
+        rows.append([method, *(stats[key] for key in keys)])
+        data[method] = {**stats, "x": surface.x.tolist(), "y": surface.y.tolist(), "returns": surface.returns.tolist()}
+    header = ["method", "roughness", "local maxima", "PC1 variance", "PC2 variance", "planned return"]
+    write_report(args.output, "surface", markdown_table(header, rows), data, command)
+
+
+def popsize_command(args: argparse.Namespace, command: str) -> None:
+    agent = load_agent(args.model, args.env)
+    methods = args.methods or methods_of(agent)
+    rows = population_sweep(agent, make_env(args.env), methods, args.populations, args.episodes, args.steps, args.seed)
+    plot_population_sweep(rows, os.path.join(args.output, "popsize.png"), title=args.env)
+    table = markdown_table(
+        ["method", "population", "elites", "real return", "planned return"],
+        [[r["method"], r["population"], r["elites"], r["real_return"], r["planned_return"]] for r in rows],
+    )
+    write_report(args.output, "popsize", table, rows, command)
+
+
+def control_command(args: argparse.Namespace, command: str) -> None:
+    curves = control_curves(args.log_folder, args.env)
+    plot_control_curves(curves, os.path.join(args.output, "control.png"), title=args.env)
+    rows = [
+        [mode, len(c.runs), int(c.timesteps[-1]), float(c.mean[-1]), float(c.std[-1])] for mode, c in curves.items()
+    ]
+    data = {m: {"runs": c.runs, "timesteps": c.timesteps.tolist(), "returns": c.returns.tolist()} for m, c in curves.items()}
+    table = markdown_table(["mode", "runs", "last step", "mean", "std"], rows)
+    write_report(args.output, "control", table, data, command)
+
+
+def model_error_command(args: argparse.Namespace, command: str) -> None:
+    agent = load_agent(args.model, args.env)
+    episode = mpc_episode(agent.mpc, make_env(args.env), args.steps, args.seed)
+    errors = model_error(agent, episode, args.stride)
+    rows = [[k + 1, *(errors[key][k] for key in errors)] for k in range(len(errors["state_rmse"]))]
+    table = markdown_table(["k", "state RMSE (std units)", "k-step return abs error", "real k-step return abs"], rows)
+    table += f"\n\nMPC episode: return {episode.total:.1f} over {len(episode.actions)} steps"
+    write_report(args.output, "model_error", table, {"episode_return": episode.total, **errors}, command)
+
+
+def parser() -> argparse.ArgumentParser:
+    top = argparse.ArgumentParser(
+        prog="python -m sb3_poplin.analysis", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    top.add_argument("--threads", type=int, default=1, help="torch threads")
+    sub = top.add_subparsers(dest="command", required=True)
+
+    def common(name: str, help_text: str, model: bool = True) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_text)
+        if model:
+            p.add_argument("--model", required=True, help="a saved POPLIN zip")
+        p.add_argument("--env", required=True, help="the gymnasium id the agent was trained on")
+        p.add_argument("--output", default=".", help="folder for the table and the figures")
+        p.add_argument("--seed", type=int, default=0)
+        return p
+
+    p = common("surface", "reward surface in the PCA plane of the candidates, per search space")
+    p.add_argument("--state-from-episode", type=int, default=0, help="MPC steps before the analysed state")
+    p.add_argument("--grid", type=int, default=25, help="grid points per PCA axis")
+    p.add_argument("--methods", nargs="+", choices=["pets", "rs", "poplin-a", "poplin-p"], help="default: all the agent can")
+    p = common("popsize", "planned and real return against the population size")
+    p.add_argument("--populations", type=int, nargs="+", default=[100, 200, 500, 1000, 2000])
+    p.add_argument("--methods", nargs="+", choices=["pets", "rs", "poplin-a", "poplin-p"], help="default: all the agent can")
+    p.add_argument("--episodes", type=int, default=1)
+    p.add_argument("--steps", type=int, default=100, help="steps per episode")
+    p = common("control", "MPC and policy-control curves of rl-zoo3 runs", model=False)
+    p.add_argument("--log-folder", required=True, help="the zoo's -f folder")
+    p = common("model-error", "open-loop k-step model error on an MPC episode")
+    p.add_argument("--steps", type=int, default=1000, help="length of the MPC episode")
+    p.add_argument("--stride", type=int, default=5, help="start a prediction every n-th state")
+    return top
+
+
+COMMANDS = {
+    "surface": surface_command,
+    "popsize": popsize_command,
+    "control": control_command,
+    "model-error": model_error_command,
+}
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    th.set_num_threads(args.threads)
+    os.makedirs(args.output, exist_ok=True)
+    np.set_printoptions(precision=4)
+    command = "python -m sb3_poplin.analysis " + " ".join(sys.argv[1:] if argv is None else argv)
+    COMMANDS[args.command](args, command)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,108 @@
+"""The paper's analyses: PCA round trip, grid returns against the planner's own, roughness, and the commands."""
+
+import json
+
+import numpy as np
+import pytest
+import torch as th
+from conftest import TINY
+
+from sb3_poplin import POPLIN
+from sb3_poplin.analysis.__main__ import main
+from sb3_poplin.analysis.surface import PCA2, grid_returns, record_search, roughness
+from sb3_poplin.variants import replanner
+
+
+def test_pca_round_trip_on_vectors_in_a_plane():
+    generator = th.Generator().manual_seed(0)
+    origin, basis = th.randn(20, generator=generator), th.randn(2, 20, generator=generator)
+    coords = th.randn(50, 2, generator=generator) * th.tensor([3.0, 0.5])
+    vectors = origin + coords @ basis  # 50 points of a 2-D plane in 20-D
+    pca = PCA2.fit(vectors)
+    assert th.allclose(pca.inverse_transform(pca.transform(vectors)), vectors, atol=1e-4)
+    assert sum(pca.explained_variance_ratio) == pytest.approx(1.0, abs=1e-6)
+    assert pca.explained_variance_ratio[0] > pca.explained_variance_ratio[1]
+    # off the plane the inverse transform is the projection onto it: transforming it again changes nothing
+    other = th.randn(7, 20, generator=generator)
+    projected = pca.inverse_transform(pca.transform(other))
+    assert th.allclose(pca.transform(projected), pca.transform(other), atol=1e-4)
+    assert th.allclose(pca.components @ pca.components.T, th.eye(2), atol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def agent(tmp_path_factory):
+    model = POPLIN("poplin-p", "Pendulum-v1", seed=0, **{**TINY, "horizon": 2})
+    model.learn(400)  # fitted twice: a model that predicts something
+    path = tmp_path_factory.mktemp("analysis") / "agent.zip"
+    model.save(path)
+    return model, path
+
+
+def test_a_grid_point_returns_what_the_planner_returned_for_that_vector(agent):
+    model, _ = agent
+    controller = replanner(model, "pets", seed=0)  # Pendulum, horizon 2: two-dimensional search vectors
+    obs = th.tensor([0.3, 0.95, -1.0])
+    record = record_search(controller, obs)
+    candidates, returns = th.cat(record.candidates), th.cat(record.returns)
+    assert candidates.shape == (2 * 20, 2) and len(record.candidates) == TINY["cem_iterations"]
+    pca = PCA2.fit(candidates)  # the plane is the whole 2-D space: every candidate lies on it
+    coords = pca.transform(candidates).numpy()
+    for i in (0, 7, 25, 39):
+        grid = grid_returns(controller, obs, pca, coords[i, :1], coords[i, 1:])
+        assert grid.shape == (1, 1)
+        assert grid[0, 0] == pytest.approx(returns[i].item(), rel=1e-4, abs=1e-4)
+
+
+def test_roughness_is_zero_on_a_plane_and_grows_with_noise():
+    x, y = np.meshgrid(np.linspace(-1, 1, 25), np.linspace(-2, 2, 25))
+    plane = 3.0 * x - 0.5 * y + 7.0
+    assert roughness(plane)["roughness"] == pytest.approx(0.0, abs=1e-12)
+    assert roughness(1000.0 * plane)["roughness"] == pytest.approx(0.0, abs=1e-12)  # scale-free
+    rng = np.random.default_rng(0)
+    noise = rng.standard_normal(plane.shape)
+    values = [roughness(plane + scale * noise)["roughness"] for scale in (0.01, 0.1, 1.0)]
+    assert 0 < values[0] < values[1] < values[2]
+    assert roughness(1000.0 * (plane + noise))["roughness"] == pytest.approx(values[2])
+    bowl = -(x**2) - y**2
+    assert roughness(bowl)["local_maxima"] == 1 and roughness(bowl + noise)["local_maxima"] > 10
+
+
+def test_commands_write_tables_and_figures(agent, tmp_path):
+    _, path = agent
+    out = tmp_path / "out"
+    main(["surface", "--model", str(path), "--env", "Pendulum-v1", "--output", str(out), "--grid", "6"])
+    surface = json.loads((out / "surface.json").read_text())
+    assert set(surface) == {"pets", "poplin-a", "poplin-p"}
+    for method, stats in surface.items():
+        assert (out / f"surface_{method}.png").stat().st_size > 1000
+        assert np.array(stats["returns"]).shape == (6, 6) and stats["roughness"] >= 0
+    assert "| pets |" in (out / "surface.md").read_text()
+    main(["popsize", "--model", str(path), "--env", "Pendulum-v1", "--output", str(out), "--populations", "10", "30",
+          "--methods", "pets", "poplin-p", "--steps", "5"])
+    rows = json.loads((out / "popsize.json").read_text())
+    assert [(r["method"], r["population"]) for r in rows] == [("pets", 10), ("pets", 30), ("poplin-p", 10), ("poplin-p", 30)]
+    assert all(np.isfinite(r["real_return"]) and len(r["real_returns"]) == 1 for r in rows)
+    assert (out / "popsize.png").exists()
+    main(["model-error", "--model", str(path), "--env", "Pendulum-v1", "--output", str(out), "--steps", "20"])
+    errors = json.loads((out / "model_error.json").read_text())
+    assert len(errors["state_rmse"]) == 2 and errors["state_rmse"][0] >= 0  # one value per prediction step
+
+
+def test_control_curves_from_zoo_runs(tmp_path):
+    runs = (("Pendulum-v1_1", 0.0), ("Pendulum-v1_2_3f2a-9c", 10.0), ("Acrobot-v1_1", 99.0), ("Pendulum-v1_x", 5.0))
+    for run, offset in runs:
+        folder = tmp_path / "logs" / "poplin" / run
+        folder.mkdir(parents=True)
+        timesteps = np.array([200, 400, 600])
+        for name, base in (("evaluations.npz", -1000.0), ("evaluations_policy.npz", -1500.0)):
+            results = base + offset + np.arange(3)[:, None] * 100.0 + np.array([[-1.0, 1.0]])  # 2 episodes each
+            np.savez(folder / name, timesteps=timesteps, results=results, ep_lengths=np.full((3, 2), 200))
+    out = tmp_path / "out"
+    main(["control", "--log-folder", str(tmp_path / "logs"), "--env", "Pendulum-v1", "--output", str(out)])
+    data = json.loads((out / "control.json").read_text())
+    assert data["mpc"]["runs"] == ["Pendulum-v1_1", "Pendulum-v1_2_3f2a-9c"]  # zoo run folders of this env only
+    np.testing.assert_allclose(data["mpc"]["returns"], [[-1000, -900, -800], [-990, -890, -790]])
+    np.testing.assert_allclose(np.mean(data["policy"]["returns"], axis=0), [-1495, -1395, -1295])
+    assert (out / "control.png").exists()
+    with pytest.raises(FileNotFoundError, match="No rl-zoo3 run of HalfCheetah-v5"):
+        main(["control", "--log-folder", str(tmp_path / "logs"), "--env", "HalfCheetah-v5", "--output", str(out)])
