@@ -69,6 +69,9 @@ REACHER_JOINTS: dict[str, tuple[tuple[float, float] | None, float]] = {
     "r_wrist_roll_joint": (None, 0.1),
 }
 REACHER_MAX_TORQUE = 20.0
+# PETS's viewer settings
+REACHER_CAMERA = {"trackbodyid": 1, "distance": 2.5, "elevation": -30.0, "azimuth": 270.0}
+PUSHER_CAMERA = {"trackbodyid": -1, "distance": 4.0}
 PUSHER_SHOULDER_PAN_RANGE = (-2.2854, 2.0)
 
 
@@ -112,6 +115,7 @@ class PETSReacher3DEnv(MujocoEnv, utils.EzPickle):
         utils.EzPickle.__init__(self, frame_skip, **kwargs)
         observation_space = Box(low=-np.inf, high=np.inf, shape=(17,), dtype=np.float64)
         self.metadata = {**self.metadata, "render_fps": int(np.round(1.0 / (0.01 * frame_skip)))}
+        kwargs.setdefault("default_camera_config", REACHER_CAMERA)
         super().__init__(ARM_ASSET, frame_skip, observation_space=observation_space, **kwargs)
         self._end_effector = self.model.site("end_effector").id
         self.goal = np.zeros(3)
@@ -200,6 +204,7 @@ class PETSPusherEnv(MujocoEnv, utils.EzPickle):
         utils.EzPickle.__init__(self, frame_skip, **kwargs)
         observation_space = Box(low=-np.inf, high=np.inf, shape=(20,), dtype=np.float64)
         self.metadata = {**self.metadata, "render_fps": int(np.round(1.0 / (0.01 * frame_skip)))}
+        kwargs.setdefault("default_camera_config", PUSHER_CAMERA)
         super().__init__(ARM_ASSET, frame_skip, observation_space=observation_space, **kwargs)
         self._tip = self.model.site("tip").id
         self._object = self.model.body("object").id
