@@ -584,7 +584,9 @@ def write_report(
     else:
         write_table(summaries, budget, table)
     runs = [{**asdict(result.job), "run_dir": result.run_dir, "returncode": result.returncode} for result in results]
-    (output / "results.json").write_text(json.dumps({"budget": budget, "tasks": summaries, "runs": runs}, indent=2))
+    suite = "paper" if paper_names else "all"
+    report = {"budget": budget, "suite": suite, "tasks": summaries, "runs": runs}
+    (output / "results.json").write_text(json.dumps(report, indent=2))
     return table
 
 

@@ -320,7 +320,7 @@ def test_compare_runs_the_paper_suite(tmp_path: Path) -> None:
     assert "| | " + " | ".join(PAPER_TASKS) + " |" in table and "failed" not in table
     assert "| SAC |" in table and "| POPLIN-P (MPC) |" in table
     results = json.loads((tmp_path / "report" / "results.json").read_text())
-    assert [task["name"] for task in results["tasks"]] == list(PAPER_TASKS)
+    assert results["suite"] == "paper" and [task["name"] for task in results["tasks"]] == list(PAPER_TASKS)
 
 
 def test_zoo_trains_enjoys_and_records_a_paper_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
