@@ -17,12 +17,19 @@ over seeds) at the step every algorithm of the task reached, ``results.json`` wi
 ``curves_<task>.png``, one learning-curve figure per task (``/`` in an id becomes ``-``). POPLIN-A/P runs
 are reported twice: MPC (``evaluations.npz``) and policy control (``evaluations_policy.npz``).
 
+``--suite paper`` runs the POPLIN paper's 13 tasks (``sb3_poplin/tasks/paper_suite.py``: Cheetah, Ant, ...,
+Cartpole, Swimmer-v0) under the paper's names: ``--envs`` then picks among them by paper name or id, and the table
+is laid out as the paper's, one column per task named as in the paper. Without it (``--suite all``) the tasks are
+``--envs`` or every task of the budget's POPLIN file, one row each.
+
 ``--budget cpu`` (default) takes POPLIN's settings and each task's ``n_timesteps`` from
 ``sb3_poplin/hyperparams/poplin_cpu.yml``; ``--budget paper`` from ``poplin.yml``. The baselines use their
 packaged files (``sac.yml`` ...) with the same ``n_timesteps``. Smoke test::
 
     python benchmarks/compare.py --algos poplin sac --envs Pendulum-v1 --seeds 0 1 -n 400 --n-evals 2 \\
         --eval-episodes 2 --params poplin:horizon:5 poplin:population_size:20 poplin:num_elites:4
+
+and of the paper suite: ``--suite paper --algos poplin sac --seeds 0 -n 400 ...`` (the same small settings).
 """
 
 from __future__ import annotations
@@ -41,6 +48,7 @@ import numpy as np
 import yaml
 
 from sb3_poplin.presets import HYPERPARAMS_DIR, PACKAGED_ALGOS
+from sb3_poplin.tasks.paper_suite import PAPER_TASKS
 from sb3_poplin.variants import POLICY_VARIANTS
 from sb3_poplin.variants import VARIANTS as VARIANT_TABLE
 
@@ -48,6 +56,7 @@ from sb3_poplin.variants import VARIANTS as VARIANT_TABLE
 VARIANTS = tuple(VARIANT_TABLE)
 ALGOS = ("poplin", *VARIANTS, *(algo for algo in PACKAGED_ALGOS if algo != "poplin"))
 BUDGETS = ("cpu", "paper")
+SUITES = ("all", "paper")
 # files of a run directory sent back by a Ray task (for clusters without a shared file system)
 RUN_FILE_SUFFIXES = (".npz", ".yml", ".txt", ".csv", ".zip")
 
@@ -55,6 +64,22 @@ RUN_FILE_SUFFIXES = (".npz", ".yml", ".txt", ".csv", ".zip")
 def hyperparams_dir() -> Path:
     """The packaged ``sb3_poplin/hyperparams`` folder."""
     return HYPERPARAMS_DIR
+
+
+def paper_suite_envs(selected: list[str] | None) -> dict[str, str]:
+    """
+    :param selected: paper names or env ids to keep (``None``: all 13)
+    :return: env id -> the paper's name, in the paper's order
+    """
+    tasks = PAPER_TASKS
+    names = {task.env_id: name for name, task in tasks.items()}
+    if selected is None:
+        return names
+    unknown = [item for item in selected if item not in tasks and item not in names]
+    if unknown:
+        raise SystemExit(f"--suite paper: {unknown} are not paper tasks; use names from {list(tasks)} or their env ids.")
+    chosen = {tasks[item].env_id if item in tasks else item for item in selected}
+    return {env: name for env, name in names.items() if env in chosen}
 
 
 def env_name(env: str) -> str:
@@ -409,19 +434,56 @@ def label_algo(label: str) -> str:
     return label.removesuffix(" (MPC)").removesuffix(" (policy)").lower()
 
 
+def table_labels(summaries: list[dict[str, Any]]) -> list[str]:
+    """
+    :param summaries: one per task
+    :return: every algorithm label of the report, in order of appearance (an algorithm whose every run failed too)
+    """
+    labels: list[str] = []
+    for summary in summaries:
+        labels += [label for label in summary["labels"] if label not in labels]
+    for summary in summaries:
+        for algo in summary["failed"]:
+            if not any(label_algo(label) == algo for label in labels):
+                labels.append(algo.upper())
+    return labels
+
+
+def write_paper_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> None:
+    """
+    The paper suite's table, laid out as the paper's: one column per task under its paper name, one row per
+    algorithm label, then the tasks' env ids and matched steps.
+
+    :param summaries: one per task (with its paper ``name``)
+    :param budget: ``"cpu"`` or ``"paper"``
+    :param path: the Markdown file to write
+    """
+    labels = table_labels(summaries)
+    lines = [
+        f"# POPLIN vs model-free baselines on the POPLIN paper's tasks ({budget} budget)",
+        "",
+        "Final evaluation return, mean ± std over seeds (each seed: mean over its evaluation episodes), at the",
+        "matched step: the last evaluation step every run of the task reached. MPC: planning with the learned",
+        "model; policy: the distilled policy network alone. Tasks as the paper names them (sb3_poplin.tasks.paper_suite).",
+        "",
+        "| | " + " | ".join(summary["name"] for summary in summaries) + " |",
+        "|---|" + "---|" * len(summaries),
+    ]
+    for label in labels:
+        cells = [format_cell(summary, label, label_algo(label)) for summary in summaries]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines.append("| env id | " + " | ".join(f"`{summary['env']}`" for summary in summaries) + " |")
+    lines.append("| matched step | " + " | ".join(str(summary["matched_step"]) for summary in summaries) + " |")
+    path.write_text("\n".join(lines) + "\n")
+
+
 def write_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> None:
     """
     :param summaries: one per task
     :param budget: ``"cpu"`` or ``"paper"``
     :param path: the Markdown file to write
     """
-    labels: list[str] = []
-    for summary in summaries:
-        labels += [label for label in summary["labels"] if label not in labels]
-    for summary in summaries:  # an algorithm whose every run failed still gets a column
-        for algo in summary["failed"]:
-            if not any(label_algo(label) == algo for label in labels):
-                labels.append(algo.upper())
+    labels = table_labels(summaries)
     lines = [
         f"# POPLIN vs model-free baselines ({budget} budget)",
         "",
@@ -442,7 +504,7 @@ def plot_curves(env: str, curves: list[Curve], budget: str, path: Path) -> None:
     """
     Plot one task's learning curves: mean over seeds with a ± std band, one line per label.
 
-    :param env: gymnasium id
+    :param env: the task's title: its gymnasium id (and paper name)
     :param curves: the task's curves
     :param budget: ``"cpu"`` or ``"paper"``
     :param path: the PNG file to write
@@ -471,7 +533,9 @@ def plot_curves(env: str, curves: list[Curve], budget: str, path: Path) -> None:
     plt.close(figure)
 
 
-def write_report(results: list[JobResult], envs: list[str], budget: str, output: Path) -> Path:
+def write_report(
+    results: list[JobResult], envs: list[str], budget: str, output: Path, paper_names: dict[str, str] | None = None
+) -> Path:
     """
     Write ``results.md``, ``results.json`` and one ``curves_<task>.png`` per task.
 
@@ -479,6 +543,7 @@ def write_report(results: list[JobResult], envs: list[str], budget: str, output:
     :param envs: the tasks, in table order
     :param budget: ``"cpu"`` or ``"paper"``
     :param output: the report folder
+    :param paper_names: env id -> the paper's task name, for the paper suite's table (``None``: one row per task)
     :return: the table's path
     """
     output.mkdir(parents=True, exist_ok=True)
@@ -492,13 +557,21 @@ def write_report(results: list[JobResult], envs: list[str], budget: str, output:
             expected[result.job.column] = expected.get(result.job.column, 0) + 1
             if result.run_dir is None:
                 failed[result.job.column] = failed.get(result.job.column, 0) + 1
-        summaries.append(summarize(env, curves, failed, expected))
+        summary = summarize(env, curves, failed, expected)
+        summary["name"] = (paper_names or {}).get(env, env)
+        summaries.append(summary)
         if curves:
-            plot_curves(env, curves, budget, output / f"curves_{env_name(env)}.png")
+            title = env if summary["name"] == env else f"{summary['name']} ({env})"
+            plot_curves(title, curves, budget, output / f"curves_{env_name(env)}.png")
     table = output / "results.md"
-    write_table(summaries, budget, table)
+    if paper_names:
+        write_paper_table(summaries, budget, table)
+    else:
+        write_table(summaries, budget, table)
     runs = [{**asdict(result.job), "run_dir": result.run_dir, "returncode": result.returncode} for result in results]
-    (output / "results.json").write_text(json.dumps({"budget": budget, "tasks": summaries, "runs": runs}, indent=2))
+    suite = "paper" if paper_names else "all"
+    report = {"budget": budget, "suite": suite, "tasks": summaries, "runs": runs}
+    (output / "results.json").write_text(json.dumps(report, indent=2))
     return table
 
 
@@ -558,7 +631,12 @@ def plan_jobs(options: argparse.Namespace) -> list[Job]:
         params.setdefault(algo, []).append(setting)
     jobs = []
     log_folder = os.path.abspath(options.log_folder or f"logs/compare-{options.budget}")
-    options.envs = options.envs or list(poplin_config)
+    if options.suite == "paper":
+        options.paper_names = paper_suite_envs(options.envs)
+        options.envs = list(options.paper_names)
+    else:
+        options.paper_names = {}
+        options.envs = options.envs or list(poplin_config)
     for env in options.envs:
         if options.n_timesteps is not None:
             n_timesteps = options.n_timesteps
@@ -594,7 +672,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--algos", nargs="+", default=list(ALGOS), choices=ALGOS, help="algorithms (rl-zoo3 names)")
-    parser.add_argument("--envs", nargs="+", help="gymnasium ids (default: every task of the budget's POPLIN file)")
+    parser.add_argument(
+        "--envs",
+        nargs="+",
+        help="gymnasium ids (default: every task of the budget's POPLIN file); with --suite paper, paper names or ids",
+    )
+    parser.add_argument(
+        "--suite",
+        choices=SUITES,
+        default="all",
+        help="all: --envs or the budget file's tasks; paper: the POPLIN paper's 13 tasks under the paper's names",
+    )
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument(
         "--budget", choices=BUDGETS, default="cpu", help="cpu: poplin_cpu.yml and its n_timesteps; paper: poplin.yml"
@@ -646,7 +734,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         results = run_local(jobs, options.jobs, options.force)
     output = Path(options.output or os.path.join(jobs[0].log_folder if jobs else ".", "report"))
-    table = write_report(results, list(options.envs), options.budget, output)
+    table = write_report(results, list(options.envs), options.budget, output, options.paper_names)
     print(table.read_text())
     print(f"Report: {output}")
     n_failed = sum(result.run_dir is None for result in results)

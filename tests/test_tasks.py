@@ -65,6 +65,29 @@ OBS_DIM = {
     "sb3_poplin/HopperNoTerm-v0": 12,
     "sb3_poplin/Walker2dNoTerm-v0": 18,
     "sb3_poplin/AntNoTerm-v0": 29,
+    "sb3_poplin/PETSReacher3D-v0": 17,
+    "sb3_poplin/PETSPusher-v0": 20,
+    "sb3_poplin/MBBLPendulum-v0": 3,
+    "sb3_poplin/MBBLInvertedPendulum-v0": 4,
+    "sb3_poplin/MBBLAcrobot-v0": 6,
+    "sb3_poplin/MBBLCartpole-v0": 4,
+}
+# Episode lengths of the package's envs: the paper's (PETS 150; MBBL ends an episode once its step count exceeds
+# max_length, 200 or 100 for InvertedPendulum, so 201 and 101).
+EPISODE_STEPS = {
+    "sb3_poplin/PETSCheetah-v0": 1000,
+    "sb3_poplin/CartPoleSwingUp-v0": 200,
+    "sb3_poplin/AcrobotSwingUp-v0": 200,
+    "sb3_poplin/FixedSwimmer-v0": 1000,
+    "sb3_poplin/HopperNoTerm-v0": 1000,
+    "sb3_poplin/Walker2dNoTerm-v0": 1000,
+    "sb3_poplin/AntNoTerm-v0": 1000,
+    "sb3_poplin/PETSReacher3D-v0": 150,
+    "sb3_poplin/PETSPusher-v0": 150,
+    "sb3_poplin/MBBLPendulum-v0": 201,
+    "sb3_poplin/MBBLInvertedPendulum-v0": 101,
+    "sb3_poplin/MBBLAcrobot-v0": 201,
+    "sb3_poplin/MBBLCartpole-v0": 201,
 }
 
 
@@ -138,8 +161,18 @@ def test_custom_env_passes_env_checker(env_id):
     env = gym.make(env_id)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*Box observation space (minimum|maximum) value is")
+        warnings.filterwarnings("ignore", message=".*symmetric and normalized space")  # the paper's torque bounds
         check_env(env.unwrapped, skip_render_check=True)
-    assert env.spec is not None and env.spec.max_episode_steps == (200 if "SwingUp" in env_id else 1000)
+    assert env.spec is not None and env.spec.max_episode_steps == EPISODE_STEPS[env_id]
+    env.reset(seed=0)
+    steps = 0
+    while True:  # the TimeLimit ends every episode, never the env
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        steps += 1
+        assert not terminated
+        if truncated:
+            break
+    assert steps == EPISODE_STEPS[env_id]
     env.close()
 
 

@@ -261,3 +261,85 @@ def test_compare_runs_poplin_variants_by_name(tmp_path: Path) -> None:
     args = {"algo": "poplin", "env": "Pendulum-v1", "seed": 0, "n_timesteps": 400, "eval_freq": 40, "eval_episodes": 3}
     args |= {"conf_file": jobs["pets"].conf_file, "hyperparams": {"policy": "pets", "horizon": 5}}
     assert jobs["pets"].matches(args) and not jobs["poplin-a"].matches(args)
+
+
+# ------------------------------------------------------------------------------------------------ the paper suite
+def test_paper_suite_is_in_every_hyperparameter_file() -> None:
+    from sb3_poplin.tasks import has_task
+    from sb3_poplin.tasks.paper_suite import PAPER_TASKS, paper_name, paper_task
+
+    assert len(PAPER_TASKS) == 13 and len({task.env_id for task in PAPER_TASKS.values()}) == 13
+    paper, cpu = zoo.load_config(zoo.config_path("poplin")), zoo.load_config(zoo.config_path("poplin", "cpu"))
+    for name, task in PAPER_TASKS.items():
+        assert has_task(task.env_id) and paper_name(task.env_id) == name and paper_task(name) is task
+        assert paper[task.env_id]["n_timesteps"] == task.n_timesteps, name
+        assert paper[task.env_id]["horizon"] == task.horizon == (25 if name in ("Reacher3D", "Pusher") else 30), name
+        assert task.env_id in cpu
+        for algo in MODEL_FREE:  # the baselines train as long (test_hyperparameter_files_share_tasks_and_budgets)
+            assert zoo.load_config(zoo.config_path(algo))[task.env_id]["n_timesteps"] == task.n_timesteps
+    assert {task.n_timesteps for task in PAPER_TASKS.values()} == {50_000, 200_000}
+    assert paper_name("Pendulum-v1") is None
+    with pytest.raises(ValueError, match=r"'Reacher' is not a task of the POPLIN paper; its tasks are \['Cheetah'"):
+        paper_task("Reacher")
+
+
+def test_compare_plans_and_reports_the_paper_suite(tmp_path: Path) -> None:
+    from sb3_poplin.tasks.paper_suite import PAPER_TASKS
+
+    compare_module = load_compare()
+    common = ["--algos", "poplin", "sac", "--seeds", "0", "-n", "400", "--log-folder", str(tmp_path)]
+    options = compare_module.parse_args(["--suite", "paper", *common])
+    jobs = compare_module.plan_jobs(options)
+    assert options.envs == [task.env_id for task in PAPER_TASKS.values()]
+    assert [job.env for job in jobs[::2]] == options.envs and {job.algo for job in jobs} == {"poplin", "sac"}
+    assert options.paper_names["sb3_poplin/MBBLCartpole-v0"] == "Cartpole"
+    # a report of runs that do not exist: every cell is a failure, the columns are the paper's names in its order
+    results = [compare_module.JobResult(job, 1) for job in jobs]
+    table = compare_module.write_report(results, options.envs, "cpu", tmp_path / "report", options.paper_names)
+    lines = table.read_text().splitlines()
+    header = next(line for line in lines if line.startswith("| |"))
+    assert header == "| | " + " | ".join(PAPER_TASKS) + " |"
+    assert any(line.startswith("| POPLIN-P | failed (1/1) |") for line in lines)
+    assert any(line.startswith("| SAC | failed (1/1) |") for line in lines)
+    assert "| env id | `sb3_poplin/PETSCheetah-v0` | `sb3_poplin/AntNoTerm-v0` |" in table.read_text()
+    # --envs picks among the paper's tasks by name or id, in the paper's order
+    options = compare_module.parse_args(["--suite", "paper", "--envs", "Cartpole", "sb3_poplin/PETSPusher-v0", *common])
+    compare_module.plan_jobs(options)
+    assert options.paper_names == {"sb3_poplin/PETSPusher-v0": "Pusher", "sb3_poplin/MBBLCartpole-v0": "Cartpole"}
+    with pytest.raises(SystemExit, match=r"\['Pendulum-v1'\] are not paper tasks"):
+        compare_module.plan_jobs(compare_module.parse_args(["--suite", "paper", "--envs", "Pendulum-v1", *common]))
+
+
+@pytest.mark.slow
+def test_compare_runs_the_paper_suite(tmp_path: Path) -> None:
+    from sb3_poplin.tasks.paper_suite import PAPER_TASKS
+
+    params = [f"poplin:{setting}" for setting in TINY_POPLIN]
+    args = ["--suite", "paper", "--algos", "poplin", "sac", "--seeds", "0", "-n", "400", "--n-evals", "1"]
+    args += ["--eval-episodes", "2", "--log-folder", str(tmp_path / "logs"), "--output", str(tmp_path / "report")]
+    run([sys.executable, str(REPO / "benchmarks" / "compare.py"), *args, "--params", *params], tmp_path, timeout=3600)
+    table = (tmp_path / "report" / "results.md").read_text()
+    assert "| | " + " | ".join(PAPER_TASKS) + " |" in table and "failed" not in table
+    assert "| SAC |" in table and "| POPLIN-P (MPC) |" in table
+    results = json.loads((tmp_path / "report" / "results.json").read_text())
+    assert results["suite"] == "paper" and [task["name"] for task in results["tasks"]] == list(PAPER_TASKS)
+
+
+def test_zoo_trains_enjoys_and_records_a_paper_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    env_id = "sb3_poplin/PETSReacher3D-v0"
+    zoo_cli = [sys.executable, "-m", "sb3_poplin.zoo"]
+    train = ["train", "--algo", "poplin", "--env", env_id, "-n", "150", "--num-threads", "1", "--seed", "0", "-f", "logs"]
+    run([*zoo_cli, *train, "--eval-freq", "150", "--eval-episodes", "2", "-params", *TINY_POPLIN], tmp_path)
+    run_dir = tmp_path / "logs" / "poplin" / "sb3_poplin-PETSReacher3D-v0_1"
+    with np.load(run_dir / "evaluations.npz") as evaluations:
+        assert evaluations["timesteps"].tolist() == [150] and evaluations["results"].shape == (1, 2)
+    play = ["--algo", "poplin", "--env", env_id, "-f", "logs", "-n", "20"]
+    process = run([*zoo_cli, "enjoy", *play, "--no-render", "--num-threads", "1"], tmp_path)
+    assert "sb3_poplin-PETSReacher3D-v0.zip" in process.stdout
+    probe = "import gymnasium as gym, sb3_poplin; e = gym.make('sb3_poplin/PETSReacher3D-v0', render_mode='rgb_array'); "
+    probe += "e.reset(seed=0); e.render()"
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))  # offscreen rendering for the runs below
+    if subprocess.run([sys.executable, "-c", probe], capture_output=True, check=False).returncode != 0:
+        pytest.skip(f"no offscreen OpenGL for MuJoCo (MUJOCO_GL={os.environ['MUJOCO_GL']}): record_video not tested")
+    run([*zoo_cli, "record_video", *play, "-o", "videos"], tmp_path)
+    assert len(list((tmp_path / "videos").glob("*.mp4"))) == 1

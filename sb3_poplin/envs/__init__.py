@@ -2,7 +2,8 @@
 The POPLIN paper's extra tasks as gymnasium environments, registered under the ``sb3_poplin/`` namespace.
 
 Importing :mod:`sb3_poplin` registers them; entry points are strings, so MuJoCo is only imported when a
-MuJoCo-based one is made. Their :class:`~sb3_poplin.tasks.TaskSpec` are in :mod:`sb3_poplin.tasks.paper`.
+MuJoCo-based one is made. Their :class:`~sb3_poplin.tasks.TaskSpec` are in :mod:`sb3_poplin.tasks.paper`,
+:mod:`sb3_poplin.tasks.pets_arm` and :mod:`sb3_poplin.tasks.mbbl`.
 
 ========================================  =========================================================  =====
 id                                        what                                                       steps
@@ -14,6 +15,12 @@ id                                        what                                  
 ``sb3_poplin/HopperNoTerm-v0``            Hopper-v5, shaped reward, never terminates                 1000
 ``sb3_poplin/Walker2dNoTerm-v0``          Walker2d-v5, shaped reward, never terminates               1000
 ``sb3_poplin/AntNoTerm-v0``               Ant-v5, shaped reward, never terminates                    1000
+``sb3_poplin/PETSReacher3D-v0``           PETS's 7-DoF arm reaching a 3-D goal                       150
+``sb3_poplin/PETSPusher-v0``              PETS's 7-DoF arm pushing a cylinder to a goal              150
+``sb3_poplin/MBBLPendulum-v0``            MBBL's Pendulum (gym Pendulum-v0, MBBL reward)             201
+``sb3_poplin/MBBLInvertedPendulum-v0``    MBBL's InvertedPendulum (reward -theta^2, no termination)  101
+``sb3_poplin/MBBLAcrobot-v0``             MBBL's Acrobot (three torques, tip height)                 201
+``sb3_poplin/MBBLCartpole-v0``            MBBL's Cartpole balance (bang-bang force, no termination)  201
 ========================================  =========================================================  =====
 """
 
@@ -31,6 +38,13 @@ _ENVS: dict[str, tuple[str, int]] = {
     "HopperNoTerm-v0": ("sb3_poplin.envs.mujoco_variants:HopperNoTermEnv", 1000),
     "Walker2dNoTerm-v0": ("sb3_poplin.envs.mujoco_variants:Walker2dNoTermEnv", 1000),
     "AntNoTerm-v0": ("sb3_poplin.envs.mujoco_variants:AntNoTermEnv", 1000),
+    "PETSReacher3D-v0": ("sb3_poplin.envs.pets_arm:PETSReacher3DEnv", 150),
+    "PETSPusher-v0": ("sb3_poplin.envs.pets_arm:PETSPusherEnv", 150),
+    # MBBL ends an episode once its step count exceeds max_length (200, InvertedPendulum 100)
+    "MBBLPendulum-v0": ("sb3_poplin.envs.mbbl_classic:MBBLPendulumEnv", 201),
+    "MBBLInvertedPendulum-v0": ("sb3_poplin.envs.mujoco_variants:MBBLInvertedPendulumEnv", 101),
+    "MBBLAcrobot-v0": ("sb3_poplin.envs.mbbl_classic:MBBLAcrobotEnv", 201),
+    "MBBLCartpole-v0": ("sb3_poplin.envs.mbbl_classic:MBBLCartpoleEnv", 201),
 }
 
 ENV_IDS: tuple[str, ...] = tuple(f"{NAMESPACE}/{name}" for name in _ENVS)

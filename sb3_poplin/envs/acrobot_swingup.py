@@ -4,17 +4,16 @@ from __future__ import annotations
 
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
-from sb3_poplin.envs.integration import rk4
+from sb3_poplin.envs.integration import HandWrittenEnv, rk4
 
 # Observation layout: [cos q1, sin q1, cos q2, sin q2, q1_dot, q2_dot] (gymnasium Acrobot's layout).
 ACROBOT_COS1, ACROBOT_SIN1, ACROBOT_COS2, ACROBOT_SIN2, ACROBOT_Q1_DOT, ACROBOT_Q2_DOT = range(6)
 
 
-class AcrobotSwingUpEnv(gym.Env[NDArray[np.float64], NDArray[np.float32]]):
+class AcrobotSwingUpEnv(HandWrittenEnv):
     """
     Acrobot swing-up with a continuous elbow torque, after the POPLIN paper's Acrobot task.
 
@@ -38,8 +37,6 @@ class AcrobotSwingUpEnv(gym.Env[NDArray[np.float64], NDArray[np.float32]]):
     :param render_mode: only ``None`` (no rendering)
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012
-
     gravity = 9.8
     link_mass = 1.0
     link_length = 1.0
@@ -54,15 +51,11 @@ class AcrobotSwingUpEnv(gym.Env[NDArray[np.float64], NDArray[np.float32]]):
         reset_noise_scale: float = 0.1,
         render_mode: str | None = None,
     ) -> None:
-        if render_mode is not None:
-            raise ValueError(f"AcrobotSwingUp has no rendering; got render_mode={render_mode!r}")
+        super().__init__(np.full(6, np.inf), render_mode)
         self.max_torque = max_torque
         self.dt = dt
         self.substeps = substeps
         self.reset_noise_scale = reset_noise_scale
-        self.render_mode = render_mode
-        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(6,), dtype=np.float64)
         self.state = np.zeros(4)
 
     def _derivatives(self, state: NDArray[np.float64], torque: float) -> NDArray[np.float64]:
@@ -97,17 +90,9 @@ class AcrobotSwingUpEnv(gym.Env[NDArray[np.float64], NDArray[np.float32]]):
         q1, q2, q1_dot, q2_dot = self.state
         return np.array([np.cos(q1), np.sin(q1), np.cos(q2), np.sin(q2), q1_dot, q2_dot], dtype=np.float64)
 
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[NDArray[np.float64], dict[str, Any]]:
-        """
-        :param seed: seeds the env's random generator
-        :param options: unused
-        :return: the first observation and an empty info dict
-        """
-        super().reset(seed=seed)
-        self.state = self.np_random.uniform(-self.reset_noise_scale, self.reset_noise_scale, size=4)
-        return self._observation(), {}
+    def _initial_state(self) -> NDArray[np.float64]:
+        """The state at a reset."""
+        return self.np_random.uniform(-self.reset_noise_scale, self.reset_noise_scale, size=4)
 
     def step(self, action: NDArray[np.float32]) -> tuple[NDArray[np.float64], float, bool, bool, dict[str, Any]]:
         """

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
-from sb3_poplin.envs.integration import rk4
+from sb3_poplin.envs.integration import HandWrittenEnv, rk4
 
 # Observation layout: [cart x, cart velocity, cos(theta), sin(theta), pole angular velocity], theta = 0 upright.
 CARTPOLE_X, CARTPOLE_X_DOT, CARTPOLE_COS, CARTPOLE_SIN, CARTPOLE_THETA_DOT = 0, 1, 2, 3, 4
@@ -16,7 +15,7 @@ CARTPOLE_X, CARTPOLE_X_DOT, CARTPOLE_COS, CARTPOLE_SIN, CARTPOLE_THETA_DOT = 0, 
 CARTPOLE_X_COST = 0.01
 
 
-class CartPoleSwingUpEnv(gym.Env[NDArray[np.float64], NDArray[np.float32]]):
+class CartPoleSwingUpEnv(HandWrittenEnv):
     """
     Cart-pole swing-up with a continuous force, after the POPLIN paper's Cartpole task.
 
@@ -40,8 +39,6 @@ class CartPoleSwingUpEnv(gym.Env[NDArray[np.float64], NDArray[np.float32]]):
     :param render_mode: only ``None`` (no rendering)
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012
-
     gravity = 9.8
     cart_mass = 1.0
     pole_mass = 0.1
@@ -54,14 +51,10 @@ class CartPoleSwingUpEnv(gym.Env[NDArray[np.float64], NDArray[np.float32]]):
         reset_noise_scale: float = 0.05,
         render_mode: str | None = None,
     ) -> None:
-        if render_mode is not None:
-            raise ValueError(f"CartPoleSwingUp has no rendering; got render_mode={render_mode!r}")
+        super().__init__(np.full(5, np.inf), render_mode)
         self.max_force = max_force
         self.dt = dt
         self.reset_noise_scale = reset_noise_scale
-        self.render_mode = render_mode
-        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(5,), dtype=np.float64)
         self.state = np.zeros(4)
 
     def _derivatives(self, state: NDArray[np.float64], force: float) -> NDArray[np.float64]:
@@ -86,18 +79,10 @@ class CartPoleSwingUpEnv(gym.Env[NDArray[np.float64], NDArray[np.float32]]):
         x, x_dot, theta, theta_dot = self.state
         return np.array([x, x_dot, np.cos(theta), np.sin(theta), theta_dot], dtype=np.float64)
 
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[NDArray[np.float64], dict[str, Any]]:
-        """
-        :param seed: seeds the env's random generator
-        :param options: unused
-        :return: the first observation and an empty info dict
-        """
-        super().reset(seed=seed)
+    def _initial_state(self) -> NDArray[np.float64]:
+        """The state at a reset."""
         noise = self.np_random.uniform(-self.reset_noise_scale, self.reset_noise_scale, size=4)
-        self.state = np.array([0.0, 0.0, np.pi, 0.0]) + noise
-        return self._observation(), {}
+        return np.array([0.0, 0.0, np.pi, 0.0]) + noise
 
     def step(self, action: NDArray[np.float32]) -> tuple[NDArray[np.float64], float, bool, bool, dict[str, Any]]:
         """

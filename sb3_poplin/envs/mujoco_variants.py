@@ -5,6 +5,7 @@ MuJoCo tasks of the POPLIN / PETS papers, as subclasses of the gymnasium v5 envi
 * :class:`FixedSwimmerEnv`: Swimmer paid the velocity of its head rather than of its body frame.
 * :class:`HopperNoTermEnv`, :class:`Walker2dNoTermEnv`, :class:`AntNoTermEnv`: no early termination and the
   paper's shaped reward ``x_velocity - 3 (z - z_target)^2 - 0.1 |a|^2 + 1``.
+* :class:`MBBLInvertedPendulumEnv`: InvertedPendulum with MBBL's reward ``-theta^2`` and no termination.
 """
 
 from __future__ import annotations
@@ -16,11 +17,13 @@ from gymnasium import utils
 from gymnasium.envs.mujoco.ant_v5 import AntEnv
 from gymnasium.envs.mujoco.half_cheetah_v5 import HalfCheetahEnv
 from gymnasium.envs.mujoco.hopper_v5 import HopperEnv
+from gymnasium.envs.mujoco.inverted_pendulum_v5 import InvertedPendulumEnv
 from gymnasium.envs.mujoco.swimmer_v5 import SwimmerEnv
 from gymnasium.envs.mujoco.walker2d_v5 import Walker2dEnv
 from gymnasium.spaces import Box
 from numpy.typing import NDArray
 
+from sb3_poplin.tasks.mbbl import MBBL_INVERTED_PENDULUM_ANGLE
 from sb3_poplin.tasks.paper import (
     ANT_TARGET_HEIGHT,
     HOPPER_TARGET_HEIGHT,
@@ -235,3 +238,32 @@ class AntNoTermEnv(AntEnv):
         :return: observation, reward, terminated (always False), truncated (False), info
         """
         return _shaped_step(self, action, z_index=2, target_height=ANT_TARGET_HEIGHT)
+
+
+class MBBLInvertedPendulumEnv(InvertedPendulumEnv):
+    """
+    MBBL's InvertedPendulum (``gym_invertedPendulum``): InvertedPendulum-v5's model and reset, reward ``-theta^2``
+    on the observation *before* the step, no termination (registered as 101 steps: MBBL ends an episode once its
+    step count exceeds 100).
+
+    Observation: InvertedPendulum-v5's ``[cart x, pole angle, cart velocity, pole angular velocity]``. Action: the
+    cart force in [-3, 3], the model's control range (MBBL passed actions to gym unscaled).
+
+    :param kwargs: passed to :class:`gymnasium.envs.mujoco.inverted_pendulum_v5.InvertedPendulumEnv`
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        utils.EzPickle.__init__(self, **kwargs)
+
+    def step(self, action: NDArray[np.float32]) -> StepResult:
+        """
+        :param action: the cart force
+        :return: observation, reward (on the state before the step), terminated (always False), truncated, info
+        """
+        angle = float(self.data.qpos[MBBL_INVERTED_PENDULUM_ANGLE])
+        self.do_simulation(action, self.frame_skip)
+        observation = self._get_obs()
+        if self.render_mode == "human":
+            self.render()
+        return observation, np.float64(-(angle**2)), False, False, {"angle": np.float64(angle)}

@@ -119,7 +119,7 @@ def make_task(env_id: str, observation_space: gym.Space | None = None) -> TaskSp
 
 
 # Built-in tasks register themselves on import.
-from sb3_poplin.tasks import classic, mujoco, paper  # noqa: E402, F401
+from sb3_poplin.tasks import classic, mbbl, mujoco, paper, pets_arm  # noqa: E402, F401
 from sb3_poplin.tasks.env_util import (  # noqa: E402
     check_spaces,
     env_id,
