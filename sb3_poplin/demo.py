@@ -2,7 +2,7 @@
 ``make demo``: POPLIN-P learns Pendulum-v1 on a CPU, then plays it in both of the paper's control modes next to a
 random policy.
 
-    python -m sb3_poplin.demo [--variant poplin-p] [--env Pendulum-v1] [--steps 3000] [--eval-episodes 5]
+    python -m sb3_poplin.demo [--variant poplin-p] [--env Pendulum-v1] [--steps 2000] [--eval-episodes 5]
                               [--params KEY:VALUE ...] [--threads 1] [--seed 0] [--out demo_output]
 
 1. The agent's settings are the env's entry in the packaged ``poplin_cpu.yml`` (a planner and model sized for two
@@ -15,7 +15,8 @@ random policy.
    control; uniform random actions play the same start states.
 4. ``--out`` receives the zip, ``learning_curve.png`` and ``summary.json``.
 
-``--steps`` defaults to 3000, where the CPU settings already swing the pendulum up with MPC (README "Results"); the
+``--steps`` defaults to 2000 (one random episode and nine MPC episodes), where the CPU settings already swing the
+pendulum up with MPC (``benchmarks/RESULTS.md``, "``make demo``"), so that the demo fits in minutes on two cores; the
 entry's ``n_timesteps`` is the budget of the zoo runs, and ``--steps`` can be raised to it.
 """
 
@@ -41,7 +42,7 @@ from sb3_poplin.poplin import POPLIN
 from sb3_poplin.zoo import config_path, load_config, task_env_kwargs
 
 DEFAULT_ENV = "Pendulum-v1"
-DEFAULT_STEPS = 3000
+DEFAULT_STEPS = 2000
 # keys of an rl-zoo3 entry that are not POPLIN arguments and that the demo handles itself
 ZOO_KEYS = ("n_timesteps", "policy", "env_kwargs")
 # the planner and model sizes of an entry: what tests and benchmarks reuse with a variant of their own
