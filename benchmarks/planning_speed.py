@@ -2,7 +2,7 @@
 Planner speed at the paper setting, against this machine's own matmul peak (measured in the same
 process, at the same thread count). Adds one row per run to benchmarks/RESULTS.md.
 
-    python benchmarks/planning_speed.py [--threads 1] [--repeats 5] [--quick] [--envs 1]
+    python benchmarks/planning_speed.py [--threads 1] [--repeats 5] [--quick] [--envs 1] [--device cpu]
 
 Paper setting: HalfCheetah-v5 sizes, population 500, horizon 30, 5 CEM iterations, 50 elites, a
 5-member 4x200 ensemble; expectation propagation and 20-particle TS-infinity; PETS, POPLIN-A (init)
@@ -10,7 +10,8 @@ and POPLIN-P (sep, [32] policy); fp32 and bf16. FLOPs are counted analytically f
 (2 * d_in * d_out per row and layer; biases and activations not counted). ``--envs N`` plans N envs in one batch
 (rows marked "N envs"; the FLOPs and each product's rows scale with N). The ratios (POPLIN-P/PETS,
 bf16 speed-ups) come from interleaved rounds, one plan per configuration in turn, so that the drift of a
-shared machine affects both sides of a ratio alike.
+shared machine affects both sides of a ratio alike. ``--device cuda`` plans on the GPU (the matmul peak then comes
+from 8192^3 products, synchronised; ``benchmarks/device_check.sh`` runs it).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from results_file import append_row, describe_machine
 
 ENV_ID = "HalfCheetah-v5"
+CPU = th.device("cpu")
 PAPER = dict(horizon=30, population_size=500, num_elites=50, cem_iterations=5, ensemble_size=5)
 RUNS = [
     ("pets", dict(policy="pets"), "expectation", "float32"),
@@ -47,14 +49,24 @@ RUNS = [
 ]
 
 
-def matmul_peak(dtype: th.dtype, size: int = 2048, repeats: int = 5) -> float:
-    """Best GFLOP/s of a square matmul (the roofline the planner is measured against)."""
-    a, b = th.randn(size, size).to(dtype), th.randn(size, size).to(dtype)
+def synchronize(device: th.device) -> None:
+    """Wait for the device's queued work (a no-op on the CPU, where every op has finished when it returns)."""
+    if device.type == "cuda":
+        th.cuda.synchronize(device)
+
+
+def matmul_peak(dtype: th.dtype, device: th.device = CPU, repeats: int = 5) -> float:
+    """Best GFLOP/s of a square matmul (the roofline the planner is measured against): 2048^3 on a CPU, 8192^3 on a
+    GPU (smaller products leave a GPU's units idle)."""
+    size = 2048 if device.type == "cpu" else 8192
+    a, b = th.randn(size, size, device=device).to(dtype), th.randn(size, size, device=device).to(dtype)
     a @ b  # warm-up
     best = 0.0
     for _ in range(repeats):
+        synchronize(device)
         start = time.perf_counter()
         a @ b
+        synchronize(device)
         best = max(best, 2 * size**3 / (time.perf_counter() - start) / 1e9)
     return best
 
@@ -70,12 +82,13 @@ def time_plans(model: POPLIN, obs: np.ndarray, repeats: int) -> float:
     return statistics.median(times)
 
 
-def make(variant: dict, propagation: str, dtype: str, arch: tuple[int, ...], n_envs: int = 1) -> POPLIN:
+def make(variant: dict, propagation: str, dtype: str, arch: tuple[int, ...], n_envs: int = 1, device: str = "cpu") -> POPLIN:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return POPLIN(
             env=ENV_ID if n_envs == 1 else make_vec_env(ENV_ID, n_envs=n_envs),
             seed=0,
+            device=device,
             propagation=propagation,
             num_particles=20,
             planning_dtype=dtype,
@@ -111,9 +124,9 @@ def interleaved_ratios(models: dict[tuple[str, str, str], tuple[POPLIN, np.ndarr
     )
 
 
-def bf16_effect(arch: tuple[int, ...], plans: int) -> str:
+def bf16_effect(arch: tuple[int, ...], plans: int, device: str = "cpu") -> str:
     """How bf16 changes the executed action and the elite set, with a model fit on random data."""
-    model = make(dict(policy="pets"), "expectation", "float32", arch)
+    model = make(dict(policy="pets"), "expectation", "float32", arch, device=device)
     model.learn(1000)  # one random episode, then one fit
     env = model.get_env()
     assert env is not None
@@ -121,8 +134,9 @@ def bf16_effect(arch: tuple[int, ...], plans: int) -> str:
     action_diffs, overlaps = [], []
     planner = model.planner
     for i in range(plans):
-        obs_t = th.as_tensor(obs, dtype=th.float32)
+        obs_t = th.as_tensor(obs, dtype=th.float32, device=model.device)
         z = th.randn(1, model.population_size, planner.search_space.dim, generator=th.Generator().manual_seed(i)) * 0.5
+        z = z.to(model.device)
         with th.inference_mode():
             planner.dtype = th.float32
             fp32 = planner.rollout(obs_t, z, None)
@@ -144,12 +158,12 @@ def bf16_effect(arch: tuple[int, ...], plans: int) -> str:
     )
 
 
-def policy_latency(repeats: int) -> tuple[float, float]:
+def policy_latency(repeats: int, device: str = "cpu") -> tuple[float, float]:
     """Median seconds of one policy-control predict: POPLIN-P's [32] policy and SAC's default actor."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        poplin = POPLIN("poplin-p", ENV_ID, seed=0, control="policy", **PAPER)
-    sac = SAC("MlpPolicy", ENV_ID, seed=0)
+        poplin = POPLIN("poplin-p", ENV_ID, seed=0, control="policy", device=device, **PAPER)
+    sac = SAC("MlpPolicy", ENV_ID, seed=0, device=device)
     obs = poplin.observation_space.sample()
     sac_obs = sac.observation_space.sample()
     results = []
@@ -173,12 +187,17 @@ def main() -> None:
     parser.add_argument(
         "--envs", type=int, default=1, help="envs planned in one batch (a VecEnv of this many; FLOPs and rows scale with it)"
     )
+    parser.add_argument("--device", default="cpu", help="torch device to plan on: cpu, cuda, cuda:1, ...")
     args = parser.parse_args()
+    device = th.device(args.device)
+    if device.type == "cuda" and not th.cuda.is_available():
+        parser.error("--device cuda: this torch build sees no CUDA device (torch.cuda.is_available() is False)")
     th.set_num_threads(args.threads)
     arch = (64, 64) if args.quick else (200, 200, 200, 200)
     command = "python " + " ".join(sys.argv)
-    machine = describe_machine(args.threads)
-    print(f"matmul peak: fp32 {matmul_peak(th.float32):.1f} GFLOP/s, bf16 {matmul_peak(th.bfloat16):.1f} GFLOP/s ({machine})")
+    machine = describe_machine(args.threads, device)
+    fp32_peak, bf16_peak = matmul_peak(th.float32, device), matmul_peak(th.bfloat16, device)
+    print(f"matmul peak: fp32 {fp32_peak:.1f} GFLOP/s, bf16 {bf16_peak:.1f} GFLOP/s ({machine})")
     section = "Planner speed at the paper setting (`benchmarks/planning_speed.py`)"
     intro = (
         "HalfCheetah-v5 sizes, population 500, horizon 30, 5 CEM iterations, 5 x (200, 200, 200, 200) ensemble; "
@@ -201,13 +220,13 @@ def main() -> None:
     ]
     models = {}
     for name, variant, propagation, dtype in RUNS:
-        model = make(variant, propagation, dtype, arch, args.envs)
+        model = make(variant, propagation, dtype, arch, args.envs, args.device)
         obs = (
             np.stack([model.observation_space.sample() for _ in range(args.envs)])
             if args.envs > 1
             else model.observation_space.sample()
         )
-        peak = matmul_peak(th.float32 if dtype == "float32" else th.bfloat16)  # right before: the machine drifts
+        peak = matmul_peak(th.float32 if dtype == "float32" else th.bfloat16, device)  # right before: the machine drifts
         seconds = time_plans(model, obs, args.repeats)
         flops = model.planner.flops(args.envs)
         rate = flops / seconds / 1e9
@@ -239,8 +258,8 @@ def main() -> None:
             ],
         )
     ratios = interleaved_ratios(models, 2 * args.repeats)
-    effect = bf16_effect(arch, plans=10)
-    poplin_latency, sac_latency = policy_latency(200)
+    effect = bf16_effect(arch, plans=10, device=args.device)
+    poplin_latency, sac_latency = policy_latency(200, args.device)
     latency = (
         f"policy-control predict {poplin_latency * 1e6:.0f} us vs SAC actor {sac_latency * 1e6:.0f} us "
         f"({poplin_latency / sac_latency:.2f}x)"

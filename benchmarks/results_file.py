@@ -32,12 +32,14 @@ def append_row(section: str, intro: str, header: list[str], row: list[str], path
         file.write("\n".join(lines) + "\n")
 
 
-def describe_machine(threads: int | None = None) -> str:
+def describe_machine(threads: int | None = None, device: object = None) -> str:
     """
     The machine column of a row: architecture, CPU model and whether it has AMX (bf16 matmuls are several times
-    faster with it, slower than fp32 without it), core count, torch version and thread count.
+    faster with it, slower than fp32 without it), core count, torch version and thread count; for a CUDA run the
+    GPU's name and CUDA version first.
 
     :param threads: torch threads of the run (omitted when None)
+    :param device: the run's torch device (or its name); a CUDA device is named in the row
     """
     import torch as th
 
@@ -51,6 +53,8 @@ def describe_machine(threads: int | None = None) -> str:
         pass
     amx = "AMX" if "amx_bf16" in info.get("flags", "").split() else "no AMX"
     parts = [platform.machine(), info.get("model name", platform.processor()), amx, f"{os.cpu_count()} cores"]
+    if device is not None and th.device(str(device)).type == "cuda":
+        parts.insert(0, f"{th.cuda.get_device_name(th.device(str(device)))} (CUDA {th.version.cuda})")
     parts.append(f"torch {th.__version__}")
     if threads is not None:
         parts.append(f"{threads} thread(s)")

@@ -629,8 +629,9 @@ class MPCController:
                     f"state has shape {tuple(mean.shape)} but the planner needs ({n_envs}, {space.dim}): pass back the "
                     "state returned by the previous predict() call for the same observations, or None"
                 )
-        if episode_start is not None:
-            reset = th.as_tensor(np.asarray(episode_start, dtype=bool).reshape(-1), device=self.device)
+        starts = None if episode_start is None else np.asarray(episode_start, dtype=bool).reshape(-1)
+        if starts is not None and starts.any():  # nothing to send to the device on most steps
+            reset = th.as_tensor(starts, device=self.device)
             mean = th.where(reset.unsqueeze(1), space.initial_mean(n_envs, self.device), mean)
         return mean
 

@@ -6,6 +6,7 @@ end, the demo, the benchmarks and the tests all take their settings from here.
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import Any
 
@@ -17,8 +18,8 @@ HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
 # algorithms with a packaged hyperparameter file (poplin also has the CPU-sized poplin_cpu.yml)
 PACKAGED_ALGOS = ("poplin", "sac", "td3", "ppo", "crossq", "tqc")
 BUDGETS = ("paper", "cpu")
-# keys of a zoo entry that are not POPLIN keyword arguments
-ZOO_KEYS = ("n_timesteps", "env_kwargs", "callback", "env_wrapper", "normalize", "n_envs", "frame_stack", "policy_kwargs")
+# keys of a POPLIN zoo entry that are not POPLIN keyword arguments (the run's budget, the env's kwargs)
+ZOO_KEYS = ("n_timesteps", "env_kwargs")
 
 
 def config_path(algo: str, budget: str = "paper") -> Path | None:
@@ -58,14 +59,26 @@ def poplin_settings(env_id: str, budget: str = "cpu", **overrides: Any) -> dict[
     :param env_id: an env with an entry in the file
     :param budget: ``"cpu"`` (``poplin_cpu.yml``) or ``"paper"`` (``poplin.yml``)
     :param overrides: keyword arguments that replace the file's (e.g. ``policy="pets"``)
-    :return: the entry without its zoo-only keys (``n_timesteps``, ``env_kwargs``, ...), lists as tuples
+    :return: the entry without :data:`ZOO_KEYS`, lists as tuples, with the overrides
+    :raises ValueError: no entry for the env, or a key POPLIN does not take (an rl-zoo3 option such as ``normalize``)
     """
     path = config_path("poplin", budget)
     assert path is not None
     entries = load_config(path)
     if env_id not in entries:
-        raise ValueError(f"{path.name} has no entry for {env_id!r}; entries: {sorted(entries)}")
-    entry = {key: value for key, value in entries[env_id].items() if key not in ZOO_KEYS}
-    settings = {key: tuple(value) if isinstance(value, list) else value for key, value in entry.items()}
-    settings.update(overrides)
-    return settings
+        raise ValueError(
+            f"{path.name} has no entry for {env_id!r}. Entries: {sorted(entries)}. Pick one of them, or train with "
+            "`sb3-poplin-zoo train --algo poplin --env ID --conf-file FILE` and a file of your own."
+        )
+    entry = {key: value for key, value in {**entries[env_id], **overrides}.items() if key not in ZOO_KEYS}
+    from sb3_poplin.poplin import POPLIN  # the settings are POPLIN's keyword arguments
+
+    accepted = set(inspect.signature(POPLIN.__init__).parameters) - {"self", "env", "_init_setup_model"}
+    unknown = sorted(set(entry) - accepted)
+    if unknown:
+        raise ValueError(
+            f"POPLIN does not take {unknown} (from the {env_id!r} entry of {path.name} or the overrides); its settings "
+            f"are its keyword arguments: {sorted(accepted)}. For rl-zoo3 options such as normalize or n_envs, train "
+            "with sb3-poplin-zoo."
+        )
+    return {key: tuple(value) if isinstance(value, list) else value for key, value in entry.items()}

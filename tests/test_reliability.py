@@ -48,6 +48,7 @@ BOX1 = spaces.Box(-1.0, 1.0, (1,))
         (spaces.Dict({"a": spaces.Box(-1.0, 1.0, (2,))}), BOX1, "flat 1-D Box observation space.*FlattenObservation"),
         (spaces.Box(0, 255, (8, 8, 3), dtype=np.uint8), BOX1, r"has shape \(8, 8, 3\).*flat 1-D Box"),
         (spaces.Box(-1.0, 1.0, (3,)), spaces.MultiDiscrete([3, 3]), "Box action space"),
+        (spaces.Box(-1.0, 1.0, (3,)), spaces.Box(-1.0, 1.0, (2, 2)), r"1-D Box action space, got shape \(2, 2\)"),
     ],
 )
 def test_unsupported_spaces_are_rejected(observation_space, action_space, message):

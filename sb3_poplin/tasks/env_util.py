@@ -55,6 +55,11 @@ def check_spaces(env: GymEnv | None) -> None:
             "Use a continuous-action environment (e.g. Pendulum-v1), or a model-free SB3 algorithm "
             "such as DQN or PPO for discrete actions."
         )
+    if len(action_space.shape) != 1:
+        raise ValueError(
+            f"POPLIN needs a 1-D Box action space, got shape {action_space.shape}. Flatten the actions with a "
+            "gymnasium.ActionWrapper of your own (and write the reward for the flat layout)."
+        )
     if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
         raise ValueError(
             f"POPLIN needs finite action bounds, got low={action_space.low}, high={action_space.high}. "
