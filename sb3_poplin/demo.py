@@ -253,13 +253,14 @@ def _summary_stats(returns: list[float]) -> dict[str, Any]:
     return {"returns": [float(r) for r in returns], "mean": float(np.mean(returns)), "std": float(np.std(returns))}
 
 
-def main(argv: list[str] | None = None) -> dict[str, Any]:
-    """
-    Run the demo (see the module docstring).
+MODE_LABELS = {
+    "mpc": "MPC control (plans every action with the learned model)",
+    "policy": "policy control (the distilled policy network alone)",
+    "random": "uniform random actions",
+}
 
-    :param argv: command-line arguments; ``None`` reads ``sys.argv``
-    :return: what ``summary.json`` holds
-    """
+
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--variant", choices=list(POPLIN.policy_aliases), default=None, help="default: the entry's")
     parser.add_argument("--env", default=DEFAULT_ENV, help="an env with an entry in poplin_cpu.yml")
@@ -270,6 +271,29 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on small CPUs)")
     parser.add_argument("--out", default="demo_output")
+    return parser
+
+
+def _evaluate_saved(path: str, env_id: str, env_kwargs: dict[str, Any], episodes: int, seed: int) -> dict[str, list[float]]:
+    """The returns of the saved agent in each of its control modes, from the same start states."""
+    loaded = POPLIN.load(path)
+    env = gym.make(env_id, **env_kwargs)
+    final: dict[str, list[float]] = {}
+    for mode in ("mpc", "policy") if loaded.policy.actor is not None else ("mpc",):
+        loaded.control = mode
+        final[mode] = episode_returns(env, agent_actor(loaded), episodes, seed)
+    env.close()
+    return final
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """
+    Run the demo (see the module docstring).
+
+    :param argv: command-line arguments; ``None`` reads ``sys.argv``
+    :return: what ``summary.json`` holds
+    """
+    parser = _parser()
     args = parser.parse_args(argv)
     if args.steps < 1 or args.eval_episodes < 1 or args.curve_episodes < 1:
         parser.error("--steps, --eval-episodes and --curve-episodes must be >= 1")
@@ -301,18 +325,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     model_path = os.path.join(args.out, f"{config.variant}_{args.env.replace('/', '_')}.zip")
     model.save(model_path)
-    loaded = POPLIN.load(model_path)  # both modes are evaluated from the saved file
-    env = gym.make(args.env, **config.env_kwargs)
-    eval_seed = args.seed + 1000
     start = time.time()
-    final: dict[str, list[float]] = {}
-    modes = ("mpc", "policy") if loaded.policy.actor is not None else ("mpc",)
-    for mode in modes:
-        loaded.control = mode
-        final[mode] = episode_returns(env, agent_actor(loaded), args.eval_episodes, eval_seed)
+    final = _evaluate_saved(model_path, args.env, config.env_kwargs, args.eval_episodes, args.seed + 1000)
     eval_time = time.time() - start
-    final["random"] = random_policy_returns(args.env, args.eval_episodes, eval_seed, config.env_kwargs)
-    env.close()
+    final["random"] = random_policy_returns(args.env, args.eval_episodes, args.seed + 1000, config.env_kwargs)
 
     plot_path = os.path.join(args.out, "learning_curve.png")
     curve = (policy_eval.timesteps, policy_eval.results["policy"]) if policy_eval else None
@@ -341,13 +357,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         f"{name} on {args.env} after {args.steps} steps ({train_time:.0f} s training, {eval_time:.0f} s "
         f"evaluation), {args.eval_episodes} episodes per agent from the same start states:"
     )
-    labels = {
-        "mpc": "MPC control (plans every action with the learned model)",
-        "policy": "policy control (the distilled policy network alone)",
-        "random": "uniform random actions",
-    }
     for mode, returns in final.items():
-        print(f"  {labels[mode]:<56} {np.mean(returns):8.1f} ± {np.std(returns):6.1f}")
+        print(f"  {MODE_LABELS[mode]:<56} {np.mean(returns):8.1f} ± {np.std(returns):6.1f}")
     print(f"Wrote {model_path}, {summary_path}" + (f" and {plot_path}" if plotted else ""))
     return summary
 

@@ -24,8 +24,8 @@ import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
-from sb3_poplin import POPLIN, dynamics, parallel
-from sb3_poplin.planning import CEM
+from sb3_poplin import POPLIN, kernels, sampling
+from sb3_poplin.sampling import CandidateSampler
 
 pytestmark = [
     pytest.mark.cuda,
@@ -75,16 +75,14 @@ class SameCandidates:
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
         self.generator = th.Generator()
-        sampler = self
+        source = self
 
-        def sample(cem: CEM, mean: th.Tensor, std: th.Tensor, generator: th.Generator | None) -> th.Tensor:
+        def sample(sampler: CandidateSampler, mean: th.Tensor, std: th.Tensor, generator: th.Generator | None) -> th.Tensor:
             n_envs, dim = mean.shape
-            noise = th.randn((n_envs, cem.population_size, dim), generator=sampler.generator).clamp(-2.0, 2.0)
-            # CEM.optimize scales std by sqrt(2) for truncated sampling and expects noise / sqrt(2)
-            noise = (noise / math.sqrt(2.0) if cem.sampling == "truncated" else noise).to(mean.device)
-            return mean.unsqueeze(1) + std.unsqueeze(1) * noise
+            noise = th.randn((n_envs, sampler.population_size, dim), generator=source.generator).clamp(-2.0, 2.0)
+            return mean.unsqueeze(1) + std.unsqueeze(1) * noise.to(mean.device)
 
-        monkeypatch.setattr(CEM, "_sample", sample)  # raises if CEM no longer samples through _sample
+        monkeypatch.setattr(CandidateSampler, "sample", sample)  # CEM draws its candidates through it
 
     def reset(self) -> None:
         self.generator.manual_seed(0)
@@ -118,7 +116,7 @@ def test_plan_matches_the_cpu_when_both_draw_the_same_candidates(
     for model, device in ((cpu, "cpu"), (gpu, "cuda")):
         candidates.reset()
         mean = model.planner.search_space.initial_mean(2, th.device(device))
-        plans[device] = model.planner.plan(obs.to(device), mean, model._generator)
+        plans[device] = model.planner.plan(obs.to(device), mean, model.mpc.generator)
     on_cpu, on_gpu = plans["cpu"], plans["cuda"]
     th.testing.assert_close(on_gpu.elites.cpu(), on_cpu.elites, rtol=0.0, atol=1e-6)  # the same elites, same order
     th.testing.assert_close(on_gpu.elite_return.cpu(), on_cpu.elite_return, rtol=1e-4, atol=1e-3)
@@ -140,18 +138,18 @@ def test_planning_makes_no_host_round_trip(
     )  # fmt: skip
     obs = observations().cuda()
     mean = model.planner.search_space.initial_mean(2, obs.device)
-    model.planner.plan(obs, mean, model._generator)  # warm-up: cuBLAS handles, cached parameter copies
+    model.planner.plan(obs, mean, model.mpc.generator)  # warm-up: cuBLAS handles, cached parameter copies
 
     def cpu_only(*args: object, **kwargs: object) -> None:
         raise AssertionError("a CPU-only fast path ran while planning on CUDA")
 
     monkeypatch.setattr(np.random, "SFC64", cpu_only)
-    monkeypatch.setattr(parallel, "run_shares", cpu_only)
-    monkeypatch.setattr(dynamics, "onednn_fused_linear", cpu_only)
+    monkeypatch.setattr(sampling, "run_shares", cpu_only)
+    monkeypatch.setattr(kernels, "onednn_fused_linear", cpu_only)
     th.cuda.synchronize()
     th.cuda.set_sync_debug_mode("error")
     try:
-        result = model.planner.plan(obs, mean, model._generator)
+        result = model.planner.plan(obs, mean, model.mpc.generator)
     finally:
         th.cuda.set_sync_debug_mode("default")
     action = result.action.cpu()
@@ -160,7 +158,7 @@ def test_planning_makes_no_host_round_trip(
 
 def test_short_learning_run_on_cuda() -> None:
     model = POPLIN("poplin-p", "Pendulum-v1", seed=0, device="cuda", **SMALL)  # type: ignore[arg-type]
-    assert model._generator.device.type == "cuda"
+    assert model.mpc.generator.device.type == "cuda"
     assert model.policy.actor is not None
     theta = model.policy.actor.flat_parameters().detach().clone()
     model.learn(600)  # a random episode, then two planned episodes, each followed by a fit and a distillation
@@ -169,14 +167,14 @@ def test_short_learning_run_on_cuda() -> None:
     assert not th.equal(model.policy.actor.flat_parameters().detach(), theta)  # Avg moved the policy
     action, state = model.predict(np.array([1.0, 0.0, 0.0], dtype=np.float32))
     assert action.shape == (1,) and np.isfinite(action).all() and abs(float(action[0])) <= 2.0
-    assert isinstance(state, th.Tensor) and state.device.type == "cuda"
+    assert isinstance(state, np.ndarray) and state.shape == (1, model.planner.search_space.dim)  # SB3's type
 
 
 def test_save_on_cuda_load_on_cpu_and_back(tmp_path: Path) -> None:
     gpu = POPLIN("poplin-p", "Pendulum-v1", seed=0, device="cuda", **SMALL).learn(400)  # type: ignore[arg-type]
     gpu.save(tmp_path / "gpu.zip")
     cpu = POPLIN.load(tmp_path / "gpu.zip", device="cpu")
-    assert cpu.device.type == "cpu" and cpu._generator.device.type == "cpu"
+    assert cpu.device.type == "cpu" and cpu.mpc.generator.device.type == "cpu"
     saved = gpu.policy.state_dict()
     for name, tensor in cpu.policy.state_dict().items():
         assert tensor.device.type == "cpu", name
