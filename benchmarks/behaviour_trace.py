@@ -27,7 +27,8 @@ from sb3_poplin import POPLIN
 TINY: dict[str, Any] = dict(
     horizon=5, population_size=20, num_elites=4, cem_iterations=2, ensemble_size=2, dynamics_net_arch=(16, 16), model_epochs=2
 )
-# name -> POPLIN keyword arguments beyond TINY
+# name -> POPLIN keyword arguments beyond TINY: spelled out here, not taken from sb3_poplin.variants, because the
+# script must run on versions of the package that predate that module
 CONFIGS: dict[str, dict[str, Any]] = {
     "pets": dict(policy="pets"),
     "pets/tsinf": dict(policy="pets", propagation="tsinf", num_particles=4),

@@ -13,15 +13,10 @@ from sb3_poplin.distillation import average_perturbation, behaviour_cloning, gan
 from sb3_poplin.dynamics import ProbabilisticEnsemble
 from sb3_poplin.planning import MPCPlanner, PolicyActionNoise, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, PolicyNetwork
+from sb3_poplin.variants import NAMED_CONFIGURATIONS, POLICY_VARIANTS, configuration
 
-CONFIGS = [
-    dict(policy="poplin-a", proposal="init"),
-    dict(policy="poplin-a", proposal="replan"),
-    dict(policy="poplin-p", noise="sep", distillation="avg"),
-    dict(policy="poplin-p", noise="sep", distillation="bc"),
-    dict(policy="poplin-p", noise="sep", distillation="gan"),
-    dict(policy="poplin-p", noise="uni", distillation="avg"),
-]
+# every named configuration with a policy network
+POLICY_CONFIGS = [name for name, config in NAMED_CONFIGURATIONS.items() if config["policy"] in POLICY_VARIANTS]
 
 
 def whitened_policy(seed=0, obs_dim=3, action_dim=2, arch=(8, 6)):
@@ -239,8 +234,9 @@ def test_only_planned_steps_are_distilled(monkeypatch):
 
 
 # ---------------------------------------------------------------- algorithm
-@pytest.mark.parametrize("config", CONFIGS, ids=lambda c: "/".join(str(v) for v in c.values()))
-def test_variant_trains_plans_and_saves(tmp_path, config):
+@pytest.mark.parametrize("name", POLICY_CONFIGS)
+def test_variant_trains_plans_and_saves(tmp_path, name):
+    config = configuration(name)
     model = POPLIN(env="Pendulum-v1", seed=0, **config, **TINY)
     model.learn(400)
     assert model.policy.actor is not None
