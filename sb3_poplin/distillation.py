@@ -14,8 +14,15 @@ it was while planning. After each model fit it runs one of the schemes below on 
 - :func:`gan_distillation` (POPLIN-P "GAN"): the generator ``pi_{theta + z}(s)``, ``z ~ N(0, init_var)``
   truncated at 2 sigma, against a discriminator on ``[action, whitened state]`` with an entropy
   bonus ``lambda = 1e-3``.
-- :func:`average_perturbation` (POPLIN-P "Avg"): ``theta <- theta + mean(omega)`` over the recorded
-  perturbations, the paper's equation (the original code overwrote theta with the mean: bug Q4).
+- :func:`average_perturbation` (POPLIN-P "Avg"): ``theta <- theta + step * mean(omega)`` over the recorded
+  perturbations (``step = 1``: the paper's equation), or ``theta <- mean(omega)`` (``"overwrite"``: what the
+  original code did, quirk Q4).
+
+The target actions are either the *executed* ones (clipped to [-1, 1]) or the *planned* ones, before the clip
+(POPLIN-P: the network as it was while planning, with the executed perturbation: the original's BC-PR target). GAN's
+fake samples go through the same clip as the real ones, or neither.
+
+:data:`ORIGINAL_DISTILLATION` lists the settings that reproduce the original code's distillation.
 """
 
 from __future__ import annotations
@@ -30,6 +37,15 @@ from sb3_poplin.common import check_state_keys
 from sb3_poplin.planning import PlanResult, PolicySearchSpace
 from sb3_poplin.policies import Discriminator, POPLINPolicy, PolicyNetwork
 from sb3_poplin.sampling import truncated_normal
+
+AVG_UPDATES = ("add", "overwrite")
+DISTILL_TARGETS = ("executed", "planned")
+# the original code's choices (poplin_original.md, section 6): plain whitening updates, Avg overwrites theta, the
+# targets are the unclipped planned actions of the latest iteration only, and the dynamics model's targets are
+# not standardised
+ORIGINAL_DISTILLATION: dict[str, Any] = dict(
+    whitening="plain", avg_update="overwrite", distill_target="planned", distill_window=None, standardise_targets=False
+)
 
 
 def _minibatches(n: int, batch_size: int, device: th.device, generator: th.Generator | None) -> list[th.Tensor]:
@@ -116,6 +132,7 @@ def gan_distillation(
     epochs: int = 40,
     batch_size: int = 64,
     entropy_coef: float = 1e-3,
+    clip: bool = False,
     generator: th.Generator | None = None,
 ) -> dict[str, float]:
     """
@@ -133,16 +150,22 @@ def gan_distillation(
     :param epochs: passes over the data
     :param batch_size: minibatch size
     :param entropy_coef: weight lambda of the discriminator's entropy bonus
+    :param clip: clip real and fake actions to [-1, 1] (executed-action targets); ``False``: neither (planned
+        targets), so that the discriminator cannot tell them apart by ``|a| > 1`` alone
     :param generator: random generator
     :return: logged statistics
     """
     n, w = states.shape[0], policy.num_params
+    if clip:
+        targets = targets.clamp(-1.0, 1.0)
     d_losses, g_losses = [], []
     for _ in range(epochs):
         z = truncated_normal((n, w), states.device, generator) * math.sqrt(noise_var)
         for rows in _minibatches(n, batch_size, states.device, generator):
             whitened = policy.whiten(states[rows]).detach()
             fake = policy.forward_perturbed(states[rows].unsqueeze(1), z[rows])[:, 0]
+            if clip:
+                fake = fake.clamp(-1.0, 1.0)
             real_logits = discriminator(th.cat([targets[rows], whitened], dim=-1))
             fake_logits = discriminator(th.cat([fake.detach(), whitened], dim=-1))
             entropy = _bernoulli_entropy(th.cat([real_logits, fake_logits])).mean()
@@ -172,18 +195,26 @@ def gan_distillation(
 
 
 @th.no_grad()
-def average_perturbation(policy: PolicyNetwork, perturbations: th.Tensor, step_size: float = 1.0) -> dict[str, float]:
+def average_perturbation(
+    policy: PolicyNetwork, perturbations: th.Tensor, step_size: float = 1.0, update: str = "add"
+) -> dict[str, float]:
     """
-    POPLIN-P Avg: ``theta <- theta + step_size * mean(omega)`` (the paper's equation with ``step_size = 1``).
+    POPLIN-P Avg: ``theta <- theta + step_size * mean(omega)`` (the paper's equation with ``step_size = 1``), or with
+    ``update="overwrite"`` ``theta <- mean(omega)`` (the original code; ``step_size`` unused).
 
     :param policy: the policy network
     :param perturbations: planned parameter perturbations ``[B, W]``
     :param step_size: fraction of the mean perturbation to apply
+    :param update: ``"add"`` or ``"overwrite"``
     :return: logged statistics
     """
-    step = perturbations.mean(dim=0).mul_(step_size)
-    policy.add_to_parameters(step)
-    return {"avg_step_norm": step.norm().item()}
+    mean = perturbations.mean(dim=0)
+    before = policy.flat_parameters()
+    if update == "overwrite":
+        policy.set_parameters(mean)
+    else:
+        policy.add_to_parameters(mean.mul_(step_size))
+    return {"avg_step_norm": (policy.flat_parameters() - before).norm().item()}
 
 
 @th.no_grad()
@@ -212,6 +243,9 @@ class Distiller:
     :param window: BC and GAN train on the most recent ``window`` planned steps; ``None``: on the steps since the
         last distillation only. Avg always uses the steps since the last update.
     :param avg_step_size: Avg's ``theta <- theta + avg_step_size * mean(omega)``
+    :param avg_update: ``"add"`` (the line above) or ``"overwrite"`` (``theta <- mean(omega)``, the original code)
+    :param target: BC's and GAN's target actions: ``"executed"`` (clipped) or ``"planned"`` (before the clip)
+    :param whitening: what a whitening update does to the first layer (:data:`sb3_poplin.policies.WHITENING_MODES`)
     :param epochs: BC's maximum epochs, or GAN's epochs
     :param batch_size: minibatch size of BC and GAN
     :param noise_var: variance of GAN's generator noise (the planner's ``init_var``)
@@ -228,6 +262,9 @@ class Distiller:
         epochs: int,
         batch_size: int,
         noise_var: float,
+        avg_update: str = "add",
+        target: str = "executed",
+        whitening: str = "function",
     ) -> None:
         assert networks.actor is not None, "distillation needs a policy network"
         self.method = method
@@ -239,6 +276,9 @@ class Distiller:
         self.epochs = epochs
         self.batch_size = batch_size
         self.noise_var = noise_var
+        self.avg_update = avg_update
+        self.target = target
+        self.whitening = whitening
         self.planned: list[dict[str, th.Tensor]] = []  # one record per planned step since the last distillation
         self.data: dict[str, th.Tensor] = {}  # BC/GAN with a window: its most recent planned steps
 
@@ -252,7 +292,8 @@ class Distiller:
         :param plan: the plan that chose the executed actions
         """
         space = self.search_space
-        record = {"states": obs.clone(), "actions": plan.action, "keep": ~plan.fallback}
+        action = plan.action if self.target == "executed" else space.planned_action(plan.solution, obs, None)
+        record = {"states": obs.clone(), "actions": action, "keep": ~plan.fallback}
         if self.method == "avg":
             record["blocks"] = space.first_block(plan.solution)
         if self.imagined:
@@ -261,7 +302,8 @@ class Distiller:
                 record["elite_blocks"] = elite_blocks
             else:
                 b, k = elite_blocks.shape[:2]
-                imagined = space.executed_action(elite_blocks.flatten(0, 1), obs.repeat_interleave(k, dim=0), None)
+                to_action = space.executed_action if self.target == "executed" else space.planned_action
+                imagined = to_action(elite_blocks.flatten(0, 1), obs.repeat_interleave(k, dim=0), None)
                 record["imagined"] = imagined.view(b, k, -1)  # [n_envs, K, A]
         self.planned.append(record)
 
@@ -288,8 +330,8 @@ class Distiller:
             blocks = new["blocks"]
             if "elite_blocks" in new:
                 blocks = th.cat([blocks, new["elite_blocks"].flatten(0, 1)])
-            stats = average_perturbation(actor, blocks, self.avg_step_size)
-            actor.update_whitening(new["states"])
+            stats = average_perturbation(actor, blocks, self.avg_step_size, self.avg_update)
+            actor.update_whitening(new["states"], self.whitening)
             return {**stats, "policy_saturation": saturated_fraction(actor, new["states"])}
         data = new
         if self.window is not None:
@@ -301,7 +343,7 @@ class Distiller:
             k = data["imagined"].shape[1]
             states = th.cat([states, states.repeat_interleave(k, dim=0)])
             targets = th.cat([targets, data["imagined"].flatten(0, 1)])
-        actor.update_whitening(new["states"])  # changes the parametrisation, not the function
+        actor.update_whitening(new["states"], self.whitening)
         with th.enable_grad():
             if self.method == "gan":
                 assert self.networks.discriminator is not None
@@ -315,6 +357,7 @@ class Distiller:
                     noise_var=self.noise_var,
                     epochs=self.epochs,
                     batch_size=self.batch_size,
+                    clip=self.target == "executed",
                     generator=generator,
                 )
             else:

@@ -5,18 +5,26 @@ This module owns the ensemble's parameters, its input/target normalisation, fitt
 transitions, and propagation of imagined states during planning. All members live in one module
 with weights ``[E, in, out]``: a forward pass is one batched matmul per layer, whatever E is.
 
-Model input: the observation without ``input_exclude`` indices (e.g. the x position), concatenated
-with the action scaled to [-1, 1], standardised with statistics refit on all data before each fit.
-Model target: the observation delta ``next_obs - obs`` (all indices, excluded ones included) and,
-with ``learned_reward``, the reward; targets are standardised per dimension as well, so the learned
-log-variance bounds act in standardised units.
+The observation goes through three hooks, PETS's names (a task may define them, see
+:class:`sb3_poplin.tasks.TaskSpec`):
+
+- ``obs_preproc(obs) -> features``: the model input, concatenated with the action scaled to [-1, 1] and
+  standardised with statistics refit on all data before each fit. Default: the observation without the
+  ``input_exclude`` indices (e.g. the x position).
+- ``targ_proc(obs, next_obs) -> target``: what the network learns to predict. Default: the delta ``next_obs - obs``
+  (all indices, excluded ones included); with ``learned_reward`` the reward is appended.
+- ``obs_postproc(obs, prediction) -> next_obs``: the next observation from a predicted target. Default: ``obs +
+  prediction``.
+
+With ``standardise_targets`` the targets are standardised per dimension too (the learned log-variance bounds then
+act in standardised units); without, the network predicts them in env units, as PETS's code did.
 """
 
 from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from itertools import pairwise
 from typing import NamedTuple
 
@@ -27,6 +35,20 @@ from torch import nn
 from sb3_poplin import kernels
 
 PROPAGATIONS = ("expectation", "ts1", "tsinf", "ds")
+
+ObsPreproc = Callable[[th.Tensor], th.Tensor]
+TargProc = Callable[[th.Tensor, th.Tensor], th.Tensor]
+ObsPostproc = Callable[[th.Tensor, th.Tensor], th.Tensor]
+
+
+def delta_target(obs: th.Tensor, next_obs: th.Tensor) -> th.Tensor:
+    """The default ``targ_proc``: ``next_obs - obs``."""
+    return next_obs - obs
+
+
+def add_delta(obs: th.Tensor, prediction: th.Tensor) -> th.Tensor:
+    """The default ``obs_postproc``: ``obs + prediction``."""
+    return obs + prediction
 
 
 def default_weight_decays(num_hidden: int) -> list[float]:
@@ -90,16 +112,24 @@ class FitResult(NamedTuple):
 
 class ProbabilisticEnsemble(nn.Module):
     """
-    Ensemble of Gaussian MLPs predicting the next-observation delta (and optionally the reward).
+    Ensemble of Gaussian MLPs predicting ``targ_proc(obs, next_obs)`` (by default the next-observation delta) and
+    optionally the reward.
 
     :param obs_dim: observation size
     :param action_dim: action size
     :param ensemble_size: number of members E
     :param hidden_sizes: hidden layer widths (swish activations)
-    :param input_exclude: observation indices not fed to the network (their delta is still predicted)
+    :param input_exclude: observation indices not fed to the network (their delta is still predicted); only
+        without ``obs_preproc``
     :param learned_reward: also predict the reward (one extra output)
     :param weight_decays: L2 coefficient per layer (hidden layers then output); ``None`` gives
         :func:`default_weight_decays`
+    :param obs_preproc: ``obs [..., o] -> model input features [..., f]``; ``None``: drop ``input_exclude``
+    :param targ_proc: ``(obs, next_obs) -> training target [..., t]``; ``None``: :func:`delta_target`
+    :param obs_postproc: ``(obs, prediction [..., t]) -> next_obs``; ``None``: :func:`add_delta`. Given with
+        ``targ_proc`` (each is the other's inverse)
+    :param standardise_targets: standardise the training targets per dimension (statistics refit before every
+        fit); ``False``: the network predicts them in env units (PETS)
     """
 
     obs_index: th.Tensor
@@ -117,19 +147,37 @@ class ProbabilisticEnsemble(nn.Module):
         input_exclude: Sequence[int] = (),
         learned_reward: bool = False,
         weight_decays: Sequence[float] | None = None,
+        obs_preproc: ObsPreproc | None = None,
+        targ_proc: TargProc | None = None,
+        obs_postproc: ObsPostproc | None = None,
+        standardise_targets: bool = True,
     ) -> None:
         super().__init__()
         if ensemble_size < 1:
             raise ValueError(f"ensemble_size must be >= 1, got {ensemble_size}")
+        if (targ_proc is None) != (obs_postproc is None):
+            raise ValueError(
+                "targ_proc and obs_postproc come together (obs_postproc(obs, targ_proc(obs, next_obs)) must give "
+                "next_obs back): pass both, or neither for the default delta target."
+            )
+        if obs_preproc is not None and len(input_exclude):
+            raise ValueError(
+                "Pass either input_exclude or obs_preproc, not both: drop the excluded indices inside obs_preproc."
+            )
         self.obs_dim = obs_dim
         self.action_dim = action_dim
         self.ensemble_size = ensemble_size
         self.learned_reward = learned_reward
+        self.standardise_targets = standardise_targets
         self.hidden_sizes = list(hidden_sizes)
         kept = [i for i in range(obs_dim) if i not in set(input_exclude)]
         self.register_buffer("obs_index", th.tensor(kept, dtype=th.long), persistent=False)
-        self.in_dim = len(kept) + action_dim
-        self.out_dim = obs_dim + int(learned_reward)
+        self.hooks = (obs_preproc, targ_proc or delta_target, obs_postproc or add_delta)
+        probe = th.zeros(1, obs_dim)
+        self.feature_dim = int(self.obs_preproc(probe).shape[-1])
+        self.target_dim = int(self.targ_proc(probe, probe).shape[-1])
+        self.in_dim = self.feature_dim + action_dim
+        self.out_dim = self.target_dim + int(learned_reward)
 
         sizes = [self.in_dim, *hidden_sizes]
         self.hidden = nn.ModuleList(EnsembleLinear(ensemble_size, a, b) for a, b in pairwise(sizes))
@@ -151,10 +199,43 @@ class ProbabilisticEnsemble(nn.Module):
         self.register_buffer("target_std", th.ones(self.out_dim))
 
     # ------------------------------------------------------------------ forward
+    def obs_preproc(self, obs: th.Tensor) -> th.Tensor:
+        """Model input features of raw observations ``[..., o]`` (by default: without the ``input_exclude`` indices)."""
+        preproc = self.hooks[0]
+        return obs.index_select(-1, self.obs_index) if preproc is None else preproc(obs)
+
+    def targ_proc(self, obs: th.Tensor, next_obs: th.Tensor) -> th.Tensor:
+        """The training target of a transition, in env units (by default the delta)."""
+        return self.hooks[1](obs, next_obs)
+
+    def obs_postproc(self, obs: th.Tensor, prediction: th.Tensor) -> th.Tensor:
+        """The next observation from a predicted target (by default ``obs + prediction``)."""
+        return self.hooks[2](obs, prediction)
+
+    def raw_input(self, obs: th.Tensor, action: th.Tensor) -> th.Tensor:
+        """Network input before standardisation: ``[obs_preproc(obs), action]`` from raw observations ``[..., o]``."""
+        return th.cat([self.obs_preproc(obs), action], dim=-1)
+
     def model_input(self, obs: th.Tensor, action: th.Tensor) -> th.Tensor:
         """Standardised network input from raw observations ``[..., o]`` and scaled actions ``[..., a]``."""
-        x = th.cat([obs.index_select(-1, self.obs_index), action], dim=-1)
-        return (x - self.input_mean) / self.input_std
+        return (self.raw_input(obs, action) - self.input_mean) / self.input_std
+
+    def training_target(self, obs: th.Tensor, next_obs: th.Tensor, rewards: th.Tensor | None = None) -> th.Tensor:
+        """Target in env units: ``targ_proc(obs, next_obs)``, with the reward appended under ``learned_reward``."""
+        target = self.targ_proc(obs, next_obs)
+        if self.learned_reward:
+            assert rewards is not None
+            target = th.cat([target, rewards.reshape(-1, 1)], dim=-1)
+        return target
+
+    def next_observation(self, obs: th.Tensor, prediction: th.Tensor) -> tuple[th.Tensor, th.Tensor | None]:
+        """
+        :param obs: the current observations ``[..., o]``
+        :param prediction: predicted targets in env units ``[..., out]``
+        :return: the next observations (``obs_postproc``) and, under ``learned_reward``, the rewards ``[...]``
+        """
+        next_obs = self.obs_postproc(obs, prediction[..., : self.target_dim])
+        return next_obs, (prediction[..., self.target_dim] if self.learned_reward else None)
 
     def forward(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """
@@ -274,9 +355,7 @@ class ProbabilisticEnsemble(nn.Module):
                 mu = out.mean(dim=1, keepdim=True)
                 std = out.std(dim=1, keepdim=True, unbiased=False)
                 out = mu + std * noise.resample
-        next_states = states + out[..., : self.obs_dim]
-        rewards = out[..., self.obs_dim] if self.learned_reward else None
-        return next_states, rewards
+        return self.next_observation(states, out)
 
     # ------------------------------------------------------------------ fitting
     def _loss(self, x: th.Tensor, y: th.Tensor) -> th.Tensor:
@@ -321,8 +400,11 @@ class ProbabilisticEnsemble(nn.Module):
 
     @th.no_grad()
     def _refit_normalisers(self, raw_in: th.Tensor, targets: th.Tensor) -> None:
-        """Input and target statistics refit on all data (a std below 1e-12 is treated as 1)."""
-        for data, mean, std in ((raw_in, self.input_mean, self.input_std), (targets, self.target_mean, self.target_std)):
+        """Input (and with ``standardise_targets`` target) statistics refit on all data (a std below 1e-12 counts as 1)."""
+        pairs = [(raw_in, self.input_mean, self.input_std)]
+        if self.standardise_targets:
+            pairs.append((targets, self.target_mean, self.target_std))
+        for data, mean, std in pairs:
             spread = data.std(dim=0, unbiased=False)
             mean.copy_(data.mean(dim=0))
             std.copy_(th.where(spread < 1e-12, th.ones_like(spread), spread))
@@ -361,11 +443,8 @@ class ProbabilisticEnsemble(nn.Module):
         if self.learned_reward and rewards is None:
             raise ValueError("This ensemble predicts rewards (learned_reward=True): pass rewards= to fit().")
         device = self.input_mean.device
-        raw_in = th.cat([obs.index_select(-1, self.obs_index), actions], dim=-1)
-        targets = next_obs - obs
-        if self.learned_reward:
-            assert rewards is not None
-            targets = th.cat([targets, rewards.reshape(-1, 1)], dim=-1)
+        raw_in = self.raw_input(obs, actions)
+        targets = self.training_target(obs, next_obs, rewards)
         n = raw_in.shape[0]
         self._refit_normalisers(raw_in, targets)
         inputs = (raw_in - self.input_mean) / self.input_std

@@ -226,8 +226,16 @@ class SearchSpace(ABC):
         """
 
     @abstractmethod
+    def planned_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
+        """
+        The first action of a solution before the clip to the action bounds: ``[n_envs, A]`` scaled, from the
+        optimizer's solution ``[n_envs, D]`` (POPLIN-P: the perturbed network's linear output; POPLIN-A: the
+        clipped proposal plus the noise). Distillation's ``"planned"`` target.
+        """
+
     def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
-        """Scaled action ``[n_envs, A]`` to execute given the optimizer's solution ``[n_envs, D]``."""
+        """Scaled action ``[n_envs, A]`` to execute from the optimizer's solution ``[n_envs, D]``: the planned one, clipped."""
+        return self.planned_action(solution, obs, context).clamp(-1.0, 1.0)
 
     fallback_description = "the action-space centre"
 
@@ -256,8 +264,8 @@ class ActionSequences(SearchSpace):
         a = z[:, :, t * self.action_dim : (t + 1) * self.action_dim].clamp(-1.0, 1.0)  # [n_envs, N, A]
         return a.unsqueeze(2).expand(-1, -1, states.shape[2], -1)
 
-    def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
-        return solution[:, : self.action_dim].clamp(-1.0, 1.0)
+    def planned_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
+        return solution[:, : self.action_dim]
 
 
 class PolicySearchSpace(SearchSpace):
@@ -333,9 +341,8 @@ class PolicyActionNoise(PolicySearchSpace):
             return a.unsqueeze(2).expand(-1, -1, states.shape[2], -1)
         return (self.policy.act(states) + delta.unsqueeze(2)).clamp(-1.0, 1.0)  # [n_envs, N, P, A]
 
-    def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
-        return (self.policy.act(obs) + solution[:, : self.action_dim]).clamp(-1.0, 1.0)
-
+    def planned_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
+        return self.policy.act(obs) + solution[:, : self.action_dim]
 
 
 class PolicyParameterNoise(PolicySearchSpace):
@@ -378,8 +385,8 @@ class PolicyParameterNoise(PolicySearchSpace):
         a = self.policy.forward_perturbed(states.reshape(n_envs * pop, p, o), omega.reshape(n_envs * pop, w))
         return a.clamp(-1.0, 1.0).view(n_envs, pop, p, -1)
 
-    def executed_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
-        return self.policy.forward_perturbed(obs.unsqueeze(1), self.first_block(solution))[:, 0].clamp(-1.0, 1.0)
+    def planned_action(self, solution: th.Tensor, obs: th.Tensor, context: Any) -> th.Tensor:
+        return self.policy.forward_perturbed(obs.unsqueeze(1), self.first_block(solution))[:, 0]
 
 
 class PlanResult(NamedTuple):

@@ -26,10 +26,22 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_poplin.dynamics import ProbabilisticEnsemble
+from sb3_poplin.dynamics import ObsPostproc, ObsPreproc, ProbabilisticEnsemble, TargProc
 
 # whitening: variance floored at 1e-2 (std >= 0.1), as in the original code
 MIN_WHITENING_VAR = 1e-2
+# what a whitening update does to the first layer (PolicyNetwork.update_whitening)
+WHITENING_MODES = ("function", "function_from_raw", "plain")
+
+
+def normc_(weight: th.Tensor, norm: float, dim: int) -> None:
+    """
+    "normc" initialisation in place: Gaussian, then every unit's incoming weight vector (the vectors along ``dim``)
+    scaled to ``norm``.
+    """
+    with th.no_grad():
+        weight.normal_()
+        weight.mul_(norm / weight.norm(dim=dim, keepdim=True))
 
 
 class PolicyNetwork(nn.Module):
@@ -58,10 +70,7 @@ class PolicyNetwork(nn.Module):
         self.biases = nn.ParameterList(nn.Parameter(th.zeros(b)) for _, b in self.shapes)
         # "normc" initialisation: each unit's incoming weight vector has norm 1 (0.01 on the output layer)
         for i, weight in enumerate(self.weights):
-            scale = 0.01 if i == len(self.shapes) - 1 else 1.0
-            with th.no_grad():
-                weight.normal_()
-                weight.mul_(scale / weight.norm(dim=0, keepdim=True))
+            normc_(weight, 0.01 if i == len(self.shapes) - 1 else 1.0, dim=0)  # [in, out]: a unit's weights are a column
         self.register_buffer("obs_mean", th.zeros(self.in_dim))
         self.register_buffer("obs_var", th.ones(self.in_dim))
         self.register_buffer("obs_count", th.zeros(()))
@@ -91,14 +100,28 @@ class PolicyNetwork(nn.Module):
         return (obs.index_select(-1, self.obs_index) - self.obs_mean) / std
 
     @th.no_grad()
-    def update_whitening(self, obs: th.Tensor) -> None:
+    def set_parameters(self, flat: th.Tensor) -> None:
+        """``theta <- flat`` for a flat vector ``[W]`` in the flat layout."""
+        self.add_to_parameters(flat - self.flat_parameters())
+
+    @th.no_grad()
+    def update_whitening(self, obs: th.Tensor, mode: str = "function") -> None:
         """
-        Add real states ``[B, o]`` to the running whitening statistics, and re-express the first
-        layer so that the network computes exactly the same function as before.
+        Add real states ``[B, o]`` to the running whitening statistics.
+
+        :param obs: real observations ``[B, o]``
+        :param mode: what happens to the first layer (see :data:`WHITENING_MODES`): ``"function"`` re-expresses it
+            so that the network computes the same function as before, except at the first update, when the
+            network has only ever seen unwhitened inputs and starts on whitened ones (its normc initialisation is
+            then in the regime it was designed for: pre-activations of std about 1); ``"function_from_raw"``
+            re-expresses at the first update too (sb3_poplin 0.2.0: the initial network's function of *raw*
+            observations is kept, which saturates the tanh units on large-scale observations); ``"plain"``
+            never re-expresses (the original code)
         """
         if obs.shape[0] == 0:
             return
         x = obs.index_select(-1, self.obs_index)
+        reexpress = mode == "function_from_raw" or (mode == "function" and bool(self.obs_count > 0))
         old_std = self.obs_var.clamp(min=MIN_WHITENING_VAR).sqrt()
         old_mean = self.obs_mean.clone()
         n, m = self.obs_count, float(x.shape[0])
@@ -108,10 +131,11 @@ class PolicyNetwork(nn.Module):
         self.obs_mean.add_(delta * m / total)
         self.obs_var.copy_((self.obs_var * n + batch_var * m + delta**2 * n * m / total) / total)
         self.obs_count.copy_(total)
-        new_std = self.obs_var.clamp(min=MIN_WHITENING_VAR).sqrt()
-        # (x - m_old) / s_old = (x_new * s_new + m_new - m_old) / s_old, x_new = (x - m_new) / s_new
-        self.biases[0].add_(((self.obs_mean - old_mean) / old_std) @ self.weights[0])
-        self.weights[0].mul_((new_std / old_std).unsqueeze(1))
+        if reexpress:
+            new_std = self.obs_var.clamp(min=MIN_WHITENING_VAR).sqrt()
+            # (x - m_old) / s_old = (x_new * s_new + m_new - m_old) / s_old, x_new = (x - m_new) / s_new
+            self.biases[0].add_(((self.obs_mean - old_mean) / old_std) @ self.weights[0])
+            self.weights[0].mul_((new_std / old_std).unsqueeze(1))
 
     def forward(self, obs: th.Tensor) -> th.Tensor:
         """Unclipped scaled action ``[..., A]`` of raw observations ``[..., o]``."""
@@ -157,7 +181,8 @@ class PolicyNetwork(nn.Module):
 class Discriminator(nn.Module):
     """
     GAN distillation's discriminator (POPLIN-P GAN): MLP on ``[action, whitened state]`` with
-    leaky-ReLU hidden layers and one logit.
+    leaky-ReLU hidden layers and one logit, initialised as the original code's (normc with norm 1 on every layer,
+    the output layer included; biases 0).
 
     :param input_dim: action size + policy input size
     :param net_arch: hidden widths
@@ -167,6 +192,10 @@ class Discriminator(nn.Module):
         super().__init__()
         sizes = [input_dim, *net_arch, 1]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in pairwise(sizes))
+        for layer in self.layers:
+            assert isinstance(layer, nn.Linear)
+            normc_(layer.weight, 1.0, dim=1)  # [out, in]: a unit's weights are a row
+            nn.init.zeros_(layer.bias)
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         """Logits ``[B]`` of ``[B, input_dim]`` inputs."""
@@ -191,6 +220,10 @@ class POPLINPolicy(BasePolicy):
     :param policy_net_arch: hidden widths of the policy network; ``None``: no policy network (PETS, RS)
     :param policy_learning_rate: Adam learning rate of the policy network (and the discriminator)
     :param discriminator_net_arch: hidden widths of the GAN discriminator; ``None``: no discriminator
+    :param obs_preproc: the task's model-input hook (see :mod:`sb3_poplin.dynamics`); ``None``: the default
+    :param targ_proc: the task's model-target hook; ``None``: the delta
+    :param obs_postproc: the inverse of ``targ_proc``; ``None``: ``obs + prediction``
+    :param standardise_targets: the dynamics model standardises its targets
     """
 
     def __init__(
@@ -207,6 +240,10 @@ class POPLINPolicy(BasePolicy):
         policy_net_arch: Sequence[int] | None = None,
         policy_learning_rate: float = 3e-3,
         discriminator_net_arch: Sequence[int] | None = None,
+        obs_preproc: ObsPreproc | None = None,
+        targ_proc: TargProc | None = None,
+        obs_postproc: ObsPostproc | None = None,
+        standardise_targets: bool = True,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=True)
         assert isinstance(observation_space, spaces.Box) and isinstance(action_space, spaces.Box)
@@ -220,6 +257,8 @@ class POPLINPolicy(BasePolicy):
         self.policy_net_arch = None if policy_net_arch is None else list(policy_net_arch)
         self.policy_learning_rate = policy_learning_rate
         self.discriminator_net_arch = None if discriminator_net_arch is None else list(discriminator_net_arch)
+        self.model_hooks: dict[str, Any] = dict(obs_preproc=obs_preproc, targ_proc=targ_proc, obs_postproc=obs_postproc)
+        self.standardise_targets = standardise_targets
         self.dynamics = ProbabilisticEnsemble(
             obs_dim=obs_dim,
             action_dim=action_dim,
@@ -228,6 +267,8 @@ class POPLINPolicy(BasePolicy):
             input_exclude=self.model_input_exclude,
             learned_reward=learned_reward,
             weight_decays=self.model_weight_decays,
+            standardise_targets=standardise_targets,
+            **self.model_hooks,
         )
         self.dynamics_optimizer = th.optim.Adam(self.dynamics.parameters(), lr=model_learning_rate)
         self.actor: PolicyNetwork | None = None
@@ -261,6 +302,8 @@ class POPLINPolicy(BasePolicy):
             policy_net_arch=self.policy_net_arch,
             policy_learning_rate=self.policy_learning_rate,
             discriminator_net_arch=self.discriminator_net_arch,
+            standardise_targets=self.standardise_targets,
+            **self.model_hooks,
         )
         return data
 

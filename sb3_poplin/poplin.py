@@ -85,6 +85,17 @@ class POPLIN(OffPolicyAlgorithm):
         paper's equation, which drives the clipped policy output into saturation within a few episodes (a
         policy stuck at full torque that the parameter noise cannot leave); 0.1 averages the planner's
         perturbations over about ten episodes (see the README)
+    :param avg_update: POPLIN-P Avg only: ``"add"`` (the line above) or ``"overwrite"`` (``theta <- mean(omega)``,
+        what the original code does: from the second update on the search runs around near-zero weights)
+    :param distill_target: BC's and GAN's target actions: ``"executed"`` (the executed actions, clipped to the
+        bounds) or ``"planned"`` (the planner's first action before the clip; POPLIN-P: the network it planned
+        with, perturbed by the executed perturbation: the original's BC-PR target). GAN's fake samples are clipped
+        like the targets
+    :param whitening: what updating the policy's input whitening does to its first layer: ``"function"``
+        (the first update only sets the statistics, so the normc network starts on whitened inputs; later updates
+        re-express the layer so that the network's function is unchanged), ``"function_from_raw"`` (the first
+        update re-expresses too, keeping the initial network's function of raw observations: sb3_poplin 0.2.0)
+        or ``"plain"`` (never re-express: the original code)
     :param policy_net_arch: hidden widths of the policy network (tanh); ``None``: POPLIN-A [64, 64], POPLIN-P [32]
     :param policy_learning_rate: Adam learning rate of the policy network (and the GAN discriminator)
     :param policy_epochs: maximum BC epochs per distillation (early stopping on a 20 % holdout), or GAN epochs
@@ -104,6 +115,8 @@ class POPLIN(OffPolicyAlgorithm):
     :param model_batch_size: minibatch size of the model fit (per member)
     :param model_learning_rate: Adam learning rate of the model
     :param holdout_ratio: fraction of the data held out for early stopping of the model fit
+    :param standardise_targets: the dynamics model standardises its training targets per dimension (statistics
+        refit before every fit); ``False``: it predicts them in env units, as PETS's code did
     :param learned_reward: the ensemble also predicts the reward and the planner uses it;
         ``None``: only when no reward is known for the env
     :param reward_fn: ``(obs, action in env units, next_obs) -> [B]`` torch reward; overrides the task registry
@@ -133,6 +146,9 @@ class POPLIN(OffPolicyAlgorithm):
     distill_imagined: bool
     distill_window: int | None
     avg_step_size: float
+    avg_update: str
+    distill_target: str
+    whitening: str
     policy_net_arch: list[int] | None
     policy_learning_rate: float
     policy_epochs: int
@@ -143,6 +159,7 @@ class POPLIN(OffPolicyAlgorithm):
     model_batch_size: int
     model_learning_rate: float
     holdout_ratio: float
+    standardise_targets: bool
     learned_reward: bool | None
 
     def __init__(
@@ -162,6 +179,9 @@ class POPLIN(OffPolicyAlgorithm):
         distill_imagined: bool | None = None,
         distill_window: int | None = 10_000,
         avg_step_size: float = 0.1,
+        avg_update: str = "add",
+        distill_target: str = "executed",
+        whitening: str = "function",
         policy_net_arch: Sequence[int] | None = None,
         policy_learning_rate: float = 3e-3,
         policy_epochs: int | None = None,
@@ -176,6 +196,7 @@ class POPLIN(OffPolicyAlgorithm):
         model_batch_size: int = 32,
         model_learning_rate: float = 1e-3,
         holdout_ratio: float = 0.0,
+        standardise_targets: bool = True,
         learned_reward: bool | None = None,
         reward_fn: RewardFn | None = None,
         termination_fn: TerminationFn | None = None,
@@ -243,13 +264,14 @@ class POPLIN(OffPolicyAlgorithm):
         self._control = value
 
     def _setup_model(self) -> None:
-        reward_fn, termination_fn, exclude, self.learned_reward = resolve_task(
+        reward_fn, termination_fn, model_hooks, self.learned_reward = resolve_task(
             self.task_id, self.user_reward_fn, self.user_termination_fn, self.learned_reward
         )
         self.policy_kwargs = dict(
             ensemble_size=self.ensemble_size,
             dynamics_net_arch=self.dynamics_net_arch,
-            model_input_exclude=list(exclude),
+            **model_hooks,
+            standardise_targets=self.standardise_targets,
             learned_reward=self.learned_reward,
             model_learning_rate=self.model_learning_rate,
             policy_net_arch=self.policy_net_arch,
@@ -284,6 +306,9 @@ class POPLIN(OffPolicyAlgorithm):
                 epochs=self.policy_epochs,
                 batch_size=self.policy_batch_size,
                 noise_var=self.init_var,
+                avg_update=self.avg_update,
+                target=self.distill_target,
+                whitening=self.whitening,
             )
         self._collecting = False  # True while SB3's rollout collection asks for an action
 
@@ -421,12 +446,12 @@ class POPLIN(OffPolicyAlgorithm):
         **kwargs: Any,
     ) -> SelfPOPLIN:
         """
-        Load a saved agent (an env is optional: planning needs none), also one saved by sb3_poplin 0.1.0. Same
-        arguments as SB3's ``load``, plus:
+        Load a saved agent (an env is optional: planning needs none), also one saved by sb3_poplin 0.1.0 or 0.2.0
+        (the settings added since take the behaviour of its release). Same arguments as SB3's ``load``, plus:
 
         :param control: ``"mpc"`` or ``"policy"`` to override the saved control mode
         """
-        saving.check_saved_agent(path)
+        kwargs = {**saving.check_saved_agent(path), **kwargs}  # a zip of an earlier release continues as it was
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
         if control is not None:
             model.control = control

@@ -21,14 +21,19 @@ from typing import Any
 import torch as th
 
 LEGACY_VERSION = "0.1.0"
+# settings added in 0.3.0, with the behaviour of the releases before: a zip without them continues as it was trained
+SETTINGS_BEFORE_0_3: dict[str, Any] = dict(
+    whitening="function_from_raw", avg_update="add", distill_target="executed", standardise_targets=True
+)
 
 
-def check_saved_agent(path: str | pathlib.Path | io.BufferedIOBase) -> bool:
+def check_saved_agent(path: str | pathlib.Path | io.BufferedIOBase) -> dict[str, Any]:
     """
     Reject, with the reason and the fix, anything that is not a complete POPLIN zip.
 
     :param path: what was given to ``POPLIN.load``
-    :return: whether the zip was written by release 0.1.0 (its planner state inside ``data``)
+    :return: the settings this zip's release did not save, with that release's behaviour
+        (:data:`SETTINGS_BEFORE_0_3`), to restore with the agent
     :raises FileNotFoundError: no file at ``path`` (nor ``path.zip``)
     :raises ValueError: not a zip, corrupted, saved by another algorithm, or incomplete
     """
@@ -75,7 +80,7 @@ def check_saved_agent(path: str | pathlib.Path | io.BufferedIOBase) -> bool:
             f"sb3_poplin {LEGACY_VERSION} (_saved_planner_state in data): it was not written by a released "
             "POPLIN.save. Save the agent again with POPLIN.save."
         )
-    return legacy
+    return {key: value for key, value in SETTINGS_BEFORE_0_3.items() if key not in data}
 
 
 def upgrade_legacy_state(saved: dict[str, Any], with_distiller: bool) -> dict[str, dict[str, Any]]:
@@ -89,9 +94,7 @@ def upgrade_legacy_state(saved: dict[str, Any], with_distiller: bool) -> dict[st
     upgraded: dict[str, dict[str, Any]] = {"mpc": {"generator": saved["generator"], "warm_start": saved.get("warm_start")}}
     if with_distiller:
         # 0.1.0 dropped failed plans' steps when recording them: every recorded step is kept
-        planned = [
-            {**record, "keep": th.ones(len(record["states"]), dtype=th.bool)} for record in saved.get("planned", [])
-        ]
+        planned = [{**record, "keep": th.ones(len(record["states"]), dtype=th.bool)} for record in saved.get("planned", [])]
         upgraded["distiller"] = {"planned": planned, "data": dict(saved.get("distill_data", {}))}
     elif saved.get("planned") or saved.get("distill_data"):
         warnings.warn("The saved agent has distillation data but no policy network: the data is dropped.", stacklevel=3)

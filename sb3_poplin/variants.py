@@ -16,6 +16,7 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_poplin.common import check_choice, check_positive_int
+from sb3_poplin.distillation import AVG_UPDATES, DISTILL_TARGETS
 from sb3_poplin.dynamics import PROPAGATIONS, ProbabilisticEnsemble
 from sb3_poplin.planning import (
     CEM,
@@ -27,7 +28,7 @@ from sb3_poplin.planning import (
     RandomShooting,
     SearchSpace,
 )
-from sb3_poplin.policies import PolicyNetwork
+from sb3_poplin.policies import WHITENING_MODES, PolicyNetwork
 from sb3_poplin.tasks import RewardFn, TerminationFn
 
 CONTROLS = ("mpc", "policy")
@@ -136,6 +137,9 @@ def resolve_settings(name: str, settings: dict[str, Any]) -> dict[str, Any]:
         s[key] = None if s[key] is None else list(s[key])
     _check_ranges(s, spec)
     check_choice("propagation", s["propagation"], PROPAGATIONS)
+    check_choice("whitening", s["whitening"], WHITENING_MODES)
+    check_choice("avg_update", s["avg_update"], AVG_UPDATES)
+    check_choice("distill_target", s["distill_target"], DISTILL_TARGETS)
     if s["propagation"] != "expectation" and (s["num_particles"] < 1 or s["num_particles"] % s["ensemble_size"]):
         raise ValueError(
             f"num_particles ({s['num_particles']}) must be a positive multiple of ensemble_size ({s['ensemble_size']}) "
@@ -268,6 +272,9 @@ SETTINGS = (
     "distill_imagined",
     "distill_window",
     "avg_step_size",
+    "avg_update",
+    "distill_target",
+    "whitening",
     "policy_net_arch",
     "policy_learning_rate",
     "policy_epochs",
@@ -278,6 +285,7 @@ SETTINGS = (
     "model_batch_size",
     "model_learning_rate",
     "holdout_ratio",
+    "standardise_targets",
     "learned_reward",
     "control",
 )

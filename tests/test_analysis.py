@@ -77,8 +77,25 @@ def test_commands_write_tables_and_figures(agent, tmp_path):
         assert (out / f"surface_{method}.png").stat().st_size > 1000
         assert np.array(stats["returns"]).shape == (6, 6) and stats["roughness"] >= 0
     assert "| pets |" in (out / "surface.md").read_text()
-    main(["popsize", "--model", str(path), "--env", "Pendulum-v1", "--output", str(out), "--populations", "10", "30",
-          "--methods", "pets", "poplin-p", "--steps", "5"])
+    main(
+        [
+            "popsize",
+            "--model",
+            str(path),
+            "--env",
+            "Pendulum-v1",
+            "--output",
+            str(out),
+            "--populations",
+            "10",
+            "30",
+            "--methods",
+            "pets",
+            "poplin-p",
+            "--steps",
+            "5",
+        ]
+    )
     rows = json.loads((out / "popsize.json").read_text())
     assert [(r["method"], r["population"]) for r in rows] == [("pets", 10), ("pets", 30), ("poplin-p", 10), ("poplin-p", 30)]
     assert all(np.isfinite(r["real_return"]) and len(r["real_returns"]) == 1 for r in rows)

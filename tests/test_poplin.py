@@ -15,8 +15,6 @@ from conftest import TINY, tiny
 from sb3_poplin import POPLIN
 
 
-
-
 # ---------------------------------------------------------------- bad input
 def test_discrete_action_space_is_rejected():
     with pytest.raises(ValueError, match=r"Box action space.*Discrete"):

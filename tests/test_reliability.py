@@ -23,7 +23,6 @@ from conftest import TINY
 from sb3_poplin import POPLIN
 
 
-
 class SpaceEnv(gym.Env):
     """A do-nothing env with the given spaces."""
 

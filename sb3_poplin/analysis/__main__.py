@@ -98,9 +98,7 @@ def popsize_command(args: argparse.Namespace, command: str) -> None:
 def control_command(args: argparse.Namespace, command: str) -> None:
     curves = control_curves(args.log_folder, args.env)
     plot_control_curves(curves, os.path.join(args.output, "control.png"), title=args.env)
-    rows = [
-        [mode, len(c.runs), int(c.timesteps[-1]), float(c.mean[-1]), float(c.std[-1])] for mode, c in curves.items()
-    ]
+    rows = [[mode, len(c.runs), int(c.timesteps[-1]), float(c.mean[-1]), float(c.std[-1])] for mode, c in curves.items()]
     data = {m: {"runs": c.runs, "timesteps": c.timesteps.tolist(), "returns": c.returns.tolist()} for m, c in curves.items()}
     table = markdown_table(["mode", "runs", "last step", "mean", "std"], rows)
     write_report(args.output, "control", table, data, command)

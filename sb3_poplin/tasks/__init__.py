@@ -34,7 +34,13 @@ class TaskSpec:
         (e.g. keeping the x position in the observation)
     :param model_input_exclude: observation indices that the dynamics model and the policy do not
         see as inputs (e.g. the x position, for translation invariance); the model still predicts
-        their change
+        their change. Shorthand for an ``obs_preproc`` that drops them (and the policy's input too)
+    :param obs_preproc: PETS's model-input hook, ``obs [..., o] -> features [..., f]`` (torch); ``None``: the
+        observation without ``model_input_exclude``. The policy network always sees the raw observation
+        (without ``model_input_exclude``)
+    :param targ_proc: PETS's model-target hook, ``(obs, next_obs) -> target [..., t]``; ``None``: ``next_obs - obs``
+    :param obs_postproc: its inverse, ``(obs, prediction) -> next_obs``; ``None``: ``obs + prediction``.
+        ``obs_postproc(obs, targ_proc(obs, next_obs)) == next_obs`` must hold
     :param description: one line for the README task table
     """
 
@@ -43,7 +49,31 @@ class TaskSpec:
     termination_fn: TerminationFn | None = None
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     model_input_exclude: tuple[int, ...] = ()
+    obs_preproc: Callable[[th.Tensor], th.Tensor] | None = None
+    targ_proc: Callable[[th.Tensor, th.Tensor], th.Tensor] | None = None
+    obs_postproc: Callable[[th.Tensor, th.Tensor], th.Tensor] | None = None
     description: str = ""
+
+    def __post_init__(self) -> None:
+        if (self.targ_proc is None) != (self.obs_postproc is None):
+            raise ValueError(
+                f"TaskSpec {self.env_id!r}: targ_proc and obs_postproc come together (obs_postproc(obs, "
+                "targ_proc(obs, next_obs)) must give next_obs back); pass both or neither."
+            )
+        if self.obs_preproc is not None and self.model_input_exclude:
+            raise ValueError(
+                f"TaskSpec {self.env_id!r}: pass model_input_exclude or obs_preproc, not both (the policy sees the "
+                "observation without model_input_exclude; drop those indices inside obs_preproc for the model)."
+            )
+
+    def model_hooks(self) -> dict[str, Any]:
+        """The dynamics model's keyword arguments for this task's observation handling."""
+        return dict(
+            model_input_exclude=list(self.model_input_exclude),
+            obs_preproc=self.obs_preproc,
+            targ_proc=self.targ_proc,
+            obs_postproc=self.obs_postproc,
+        )
 
 
 _REGISTRY: dict[str, TaskSpec] = {}

@@ -102,7 +102,7 @@ def resolve_task(
     reward_fn: RewardFn | None,
     termination_fn: TerminationFn | None,
     learned_reward: bool | None,
-) -> tuple[RewardFn | None, TerminationFn | None, tuple[int, ...], bool]:
+) -> tuple[RewardFn | None, TerminationFn | None, dict[str, Any], bool]:
     """
     What the planner uses for an env: the user's functions win over the registered task's.
 
@@ -111,7 +111,8 @@ def resolve_task(
     :param termination_fn: the user's termination function, or None
     :param learned_reward: the model learns the reward; None: only when no reward function is known
     :return: the planner's reward function (None when the reward is learned), its termination function, the
-        observation indices the networks do not see, and whether the reward is learned
+        task's observation handling for the networks (:meth:`TaskSpec.model_hooks`: ``model_input_exclude`` and
+        the model's ``obs_preproc`` / ``targ_proc`` / ``obs_postproc``), and whether the reward is learned
     """
     task = make_task(task_id) if task_id is not None and has_task(task_id) else None
     reward_fn = reward_fn or (task.reward_fn if task else None)
@@ -125,5 +126,5 @@ def resolve_task(
             "sb3_poplin.tasks.register_task) if this env can terminate.",
             stacklevel=4,
         )
-    exclude = tuple(task.model_input_exclude) if task else ()
-    return (None if learned_reward else reward_fn), termination_fn, exclude, learned_reward
+    hooks = task.model_hooks() if task else dict(model_input_exclude=[], obs_preproc=None, targ_proc=None, obs_postproc=None)
+    return (None if learned_reward else reward_fn), termination_fn, hooks, learned_reward

@@ -27,6 +27,27 @@ def pets_cheetah_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) 
     return next_obs[..., PETS_CHEETAH_VELOCITY] - PETS_CHEETAH_CTRL_COST * squared_norm(action)
 
 
+# PETS's half-cheetah model (its config's obs_preproc / targ_proc / obs_postproc): the forward velocity obs[0] is not
+# a model input but is predicted absolutely; obs[2] (the body angle) enters as its sine and cosine; the rest as deltas
+PETS_CHEETAH_ANGLE = 2
+
+
+def pets_cheetah_obs_preproc(obs: th.Tensor) -> th.Tensor:
+    """Model input of PETS Cheetah: ``[obs[1], sin obs[2], cos obs[2], obs[3:]]`` (18 features from 18 entries)."""
+    angle = obs[..., PETS_CHEETAH_ANGLE : PETS_CHEETAH_ANGLE + 1]
+    return th.cat([obs[..., 1:PETS_CHEETAH_ANGLE], th.sin(angle), th.cos(angle), obs[..., PETS_CHEETAH_ANGLE + 1 :]], dim=-1)
+
+
+def pets_cheetah_targ_proc(obs: th.Tensor, next_obs: th.Tensor) -> th.Tensor:
+    """Model target of PETS Cheetah: ``[next[0], next[1:] - obs[1:]]`` (the velocity absolute, the rest as deltas)."""
+    return th.cat([next_obs[..., :1], next_obs[..., 1:] - obs[..., 1:]], dim=-1)
+
+
+def pets_cheetah_obs_postproc(obs: th.Tensor, prediction: th.Tensor) -> th.Tensor:
+    """Next observation of PETS Cheetah from a prediction: ``[pred[0], obs[1:] + pred[1:]]``."""
+    return th.cat([prediction[..., :1], obs[..., 1:] + prediction[..., 1:]], dim=-1)
+
+
 def cartpole_swingup_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> th.Tensor:
     """Cart-pole swing-up: ``cos(theta') - 0.01 x'^2`` (theta = 0 upright), obs = [x, x_dot, cos, sin, theta_dot]."""
     return next_obs[..., CARTPOLE_COS] - CARTPOLE_X_COST * next_obs[..., CARTPOLE_X] ** 2
@@ -99,7 +120,10 @@ for _spec in (
     TaskSpec(
         env_id="sb3_poplin/PETSCheetah-v0",
         reward_fn=pets_cheetah_reward,
-        description="obs[0] is the forward velocity (x not observed); never terminates",
+        obs_preproc=pets_cheetah_obs_preproc,
+        targ_proc=pets_cheetah_targ_proc,
+        obs_postproc=pets_cheetah_obs_postproc,
+        description="obs[0] is the forward velocity (x not observed); never terminates; PETS's model hooks",
     ),
     TaskSpec(
         env_id="sb3_poplin/CartPoleSwingUp-v0",

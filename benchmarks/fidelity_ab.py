@@ -1,0 +1,225 @@
+"""
+The fidelity A/B (issue 19): sb3_poplin 0.2.0's distillation and model choices against the original code's, each
+change alone and all together, per configuration and seed. Every finished run writes one small JSON file
+(``benchmarks/fidelity_ab/<task>/<configuration>/<arm>/seed<k>.json``), so an interrupted A/B resumes where it
+stopped; ``--report`` turns the files into the table of ``benchmarks/RESULTS.md``.
+
+Arms (POPLIN keyword arguments on top of the task's CPU settings from ``poplin_cpu.yml``):
+
+- ``v0.2``: the 0.2.0 behaviour (whitening ``function_from_raw``, Avg ``add`` with step 0.1, executed-action
+  targets from a 10 000-step window, standardised model targets; on PETSCheetah no PETS model hooks);
+- ``original``: the original code's (:data:`sb3_poplin.distillation.ORIGINAL_DISTILLATION`, PETS's hooks);
+- one change from ``v0.2`` each: ``whitening`` (``function``: the first update starts whitened), ``whitening-plain``,
+  ``avg-overwrite``, ``avg-add-1`` (the paper's equation, step 1), ``planned-target``, ``latest-window`` (BC/GAN on
+  the latest episode only), ``raw-targets`` (model targets not standardised), ``pets-hooks`` (PETSCheetah only).
+
+Protocol per run: ``learn(steps)`` from seed k; the training episodes' returns; then MPC and policy control
+(POPLIN-A/P) on deterministic evaluation episodes of a fresh env seeded 1000 + k.
+
+    python benchmarks/fidelity_ab.py --task Pendulum-v1 --configs poplin-p/sep/avg poplin-p/sep/bc \\
+        --arms v0.2 original --seeds 0 1 2 3 --jobs 2
+    python benchmarks/fidelity_ab.py --report
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+OUTPUT = HERE / "fidelity_ab"
+STEPS = {"Pendulum-v1": 3000, "sb3_poplin/PETSCheetah-v0": 10_000}
+# the PETSCheetah task as 0.2.0 modelled it (raw observations in, deltas out): the same env under another id
+RAW_CHEETAH = "sb3_poplin_ab/PETSCheetahRawModel-v0"
+
+V0_2: dict[str, Any] = dict(
+    whitening="function_from_raw",
+    avg_update="add",
+    avg_step_size=0.1,
+    distill_target="executed",
+    distill_window=10_000,
+    standardise_targets=True,
+)
+ORIGINAL: dict[str, Any] = dict(
+    whitening="plain", avg_update="overwrite", distill_target="planned", distill_window=None, standardise_targets=False
+)
+ARMS: dict[str, dict[str, Any]] = {
+    "v0.2": {},
+    "original": ORIGINAL,
+    "whitening": dict(whitening="function"),
+    "whitening-plain": dict(whitening="plain"),
+    "avg-overwrite": dict(avg_update="overwrite"),
+    "avg-add-1": dict(avg_step_size=1.0),
+    "planned-target": dict(distill_target="planned"),
+    "latest-window": dict(distill_window=None),
+    "raw-targets": dict(standardise_targets=False),
+    "pets-hooks": {},
+}
+
+
+def uses_pets_hooks(task: str, arm: str) -> bool:
+    """PETSCheetah runs with PETS's model hooks in the arms that say so (the others model it as 0.2.0 did)."""
+    return arm in ("original", "pets-hooks")
+
+
+def register_raw_cheetah() -> None:
+    """Register ``RAW_CHEETAH``: the PETSCheetah env and reward without PETS's model hooks (0.2.0's model)."""
+    import gymnasium as gym
+
+    from sb3_poplin.tasks import TaskSpec, has_task, make_task, register_task
+
+    if has_task(RAW_CHEETAH):
+        return
+    spec = gym.spec("sb3_poplin/PETSCheetah-v0")
+    gym.register(RAW_CHEETAH, entry_point=spec.entry_point, max_episode_steps=spec.max_episode_steps)
+    task = make_task("sb3_poplin/PETSCheetah-v0")
+    register_task(TaskSpec(env_id=RAW_CHEETAH, reward_fn=task.reward_fn, description="PETSCheetah without model hooks"))
+
+
+def run_path(task: str, config: str, arm: str, seed: int) -> Path:
+    return OUTPUT / task.replace("/", "_") / config.replace("/", "_") / arm / f"seed{seed}.json"
+
+
+def run_one(task: str, config: str, arm: str, seed: int, steps: int, eval_mpc: int, eval_policy: int) -> dict[str, Any]:
+    """Train and evaluate one (task, configuration, arm, seed); :return: the record written to its JSON file."""
+    import torch as th
+    from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from sb3_poplin import POPLIN
+    from sb3_poplin.presets import poplin_settings
+    from sb3_poplin.tasks import make_env
+    from sb3_poplin.variants import configuration
+
+    th.set_num_threads(1)
+    env_name = task
+    if task == "sb3_poplin/PETSCheetah-v0" and not uses_pets_hooks(task, arm):
+        register_raw_cheetah()
+        env_name = RAW_CHEETAH
+    cpu = {k: v for k, v in poplin_settings(task).items() if k not in ("policy", "noise", "n_timesteps")}
+    settings = {**cpu, **configuration(config), **V0_2, **ARMS[arm]}
+    model = POPLIN(env=make_env(env_name), seed=seed, **settings)
+    start = time.time()
+    model.learn(steps)
+    train_time = time.time() - start
+    train_returns = [float(info["r"]) for info in model.ep_info_buffer]
+
+    def evaluate(control: str, episodes: int) -> list[float]:
+        model.control = control
+        env = DummyVecEnv([lambda: Monitor(make_env(env_name))])
+        env.seed(1000 + seed)
+        returns, _ = evaluate_policy(model, env, n_eval_episodes=episodes, deterministic=True, return_episode_rewards=True)
+        return [float(r) for r in returns]
+
+    start = time.time()
+    mpc = evaluate("mpc", eval_mpc)
+    policy = evaluate("policy", eval_policy) if model.policy.actor is not None else None
+    record = dict(
+        task=task,
+        configuration=config,
+        arm=arm,
+        seed=seed,
+        steps=steps,
+        settings={k: (list(v) if isinstance(v, tuple) else v) for k, v in settings.items()},
+        pets_hooks=env_name == task and task == "sb3_poplin/PETSCheetah-v0",
+        train_returns=train_returns,
+        mpc_returns=mpc,
+        policy_returns=policy,
+        train_time_s=round(train_time, 1),
+        eval_time_s=round(time.time() - start, 1),
+        date=str(datetime.date.today()),
+        commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE).stdout.strip()
+        + ("+changes" if subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=HERE).returncode else ""),
+    )
+    path = run_path(task, config, arm, seed)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record, indent=1))
+    return record
+
+
+def load_runs() -> list[dict[str, Any]]:
+    return [json.loads(p.read_text()) for p in sorted(OUTPUT.rglob("seed*.json"))]
+
+
+def _cell(values: list[float]) -> str:
+    return f"{np.mean(values):.0f} ± {np.std(values):.0f}" if values else "n/a"
+
+
+def report() -> str:
+    """The A/B table: per task, configuration and arm, the mean ± std over seeds of each seed's mean return."""
+    rows = {}
+    for r in load_runs():
+        rows.setdefault((r["task"], r["configuration"], r["arm"]), []).append(r)
+    lines = [
+        "| task | configuration | arm | seeds | MPC return | policy return | last-3-episodes training return | "
+        "per seed: MPC / policy |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    arm_order = list(ARMS)
+    for (task, config, arm), runs in sorted(rows.items(), key=lambda kv: (kv[0][0], kv[0][1], arm_order.index(kv[0][2]))):
+        runs.sort(key=lambda r: r["seed"])
+        mpc = [float(np.mean(r["mpc_returns"])) for r in runs]
+        policy = [float(np.mean(r["policy_returns"])) for r in runs if r["policy_returns"] is not None]
+        train = [float(np.mean(r["train_returns"][-3:])) for r in runs if r["train_returns"]]
+        per_seed = ", ".join(
+            f"s{r['seed']}: {np.mean(r['mpc_returns']):.0f} / "
+            + ("n/a" if r["policy_returns"] is None else f"{np.mean(r['policy_returns']):.0f}")
+            for r in runs
+        )
+        lines.append(
+            f"| {task} | {config} | {arm} | {len(runs)} | {_cell(mpc)} | {_cell(policy)} | {_cell(train)} | {per_seed} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default="Pendulum-v1", choices=list(STEPS))
+    parser.add_argument("--configs", nargs="+", default=["poplin-p/sep/avg", "poplin-p/sep/bc"])
+    parser.add_argument("--arms", nargs="+", default=["v0.2", "original"], choices=list(ARMS))
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3])
+    parser.add_argument("--steps", type=int, default=None, help="env steps per run (Pendulum 3000, PETSCheetah 10000)")
+    parser.add_argument("--eval-mpc", type=int, default=2, help="MPC evaluation episodes per run")
+    parser.add_argument("--eval-policy", type=int, default=10, help="policy-control evaluation episodes per run")
+    parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one thread each)")
+    parser.add_argument("--report", action="store_true", help="print the table of the finished runs and exit")
+    args = parser.parse_args()
+    if args.report:
+        print(report())
+        return
+    steps = args.steps or STEPS[args.task]
+    # seeds outermost: the first seeds of every arm finish first
+    todo = [
+        (args.task, config, arm, seed)
+        for seed in args.seeds
+        for config in args.configs
+        for arm in args.arms
+        if not run_path(args.task, config, arm, seed).exists()
+    ]
+    print(f"{len(todo)} runs to do", flush=True)
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        futures = {pool.submit(run_one, *job, steps, args.eval_mpc, args.eval_policy): job for job in todo}
+        for future in as_completed(futures):
+            r = future.result()
+            policy = "n/a" if r["policy_returns"] is None else f"{np.mean(r['policy_returns']):.1f}"
+            print(
+                f"{futures[future]}: MPC {np.mean(r['mpc_returns']):.1f}, policy {policy}, "
+                f"train {r['train_time_s']} s, eval {r['eval_time_s']} s",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    sys.exit(main())
