@@ -8,7 +8,7 @@ Arms (POPLIN keyword arguments on top of the task's CPU settings from ``poplin_c
 
 - ``v0.2``: the 0.2.0 behaviour (whitening ``function_from_raw``, Avg ``add`` with step 0.1, executed-action
   targets from a 10 000-step window, standardised model targets; on PETSCheetah no PETS model hooks);
-- ``original``: the original code's (:data:`sb3_poplin.distillation.ORIGINAL_DISTILLATION`, PETS's hooks);
+- ``original``: the original code's (:data:`sb3_poplin.variants.ORIGINAL_CODE_SETTINGS`, PETS's hooks);
 - one change from ``v0.2`` each: ``whitening`` (``function``: the first update starts whitened), ``whitening-plain``,
   ``avg-overwrite``, ``avg-add-1`` (the paper's equation, step 1), ``planned-target``, ``latest-window`` (BC/GAN on
   the latest episode only), ``raw-targets`` (model targets not standardised), ``pets-hooks`` (PETSCheetah only).
@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import multiprocessing
 import os
 import subprocess
 import sys
@@ -36,23 +37,18 @@ from typing import Any
 
 import numpy as np
 
+from sb3_poplin.saving import SETTINGS_BEFORE_0_3
+from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS
+
 HERE = Path(__file__).resolve().parent
 OUTPUT = HERE / "fidelity_ab"
 STEPS = {"Pendulum-v1": 3000, "sb3_poplin/PETSCheetah-v0": 10_000}
 # the PETSCheetah task as 0.2.0 modelled it (raw observations in, deltas out): the same env under another id
 RAW_CHEETAH = "sb3_poplin_ab/PETSCheetahRawModel-v0"
 
-V0_2: dict[str, Any] = dict(
-    whitening="function_from_raw",
-    avg_update="add",
-    avg_step_size=0.1,
-    distill_target="executed",
-    distill_window=10_000,
-    standardise_targets=True,
-)
-ORIGINAL: dict[str, Any] = dict(
-    whitening="plain", avg_update="overwrite", distill_target="planned", distill_window=None, standardise_targets=False
-)
+# 0.2.0's behaviour: the settings added since with their earlier behaviour, and 0.2.0's Avg step and window
+V0_2: dict[str, Any] = {**SETTINGS_BEFORE_0_3, "avg_step_size": 0.1, "distill_window": 10_000}
+ORIGINAL: dict[str, Any] = dict(ORIGINAL_CODE_SETTINGS)
 ARMS: dict[str, dict[str, Any]] = {
     "v0.2": {},
     "original": ORIGINAL,
@@ -208,7 +204,7 @@ def main() -> None:
         if not run_path(args.task, config, arm, seed).exists()
     ]
     print(f"{len(todo)} runs to do", flush=True)
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+    with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = {pool.submit(run_one, *job, steps, args.eval_mpc, args.eval_policy): job for job in todo}
         for future in as_completed(futures):
             r = future.result()

@@ -22,7 +22,7 @@ The target actions are either the *executed* ones (clipped to [-1, 1]) or the *p
 (POPLIN-P: the network as it was while planning, with the executed perturbation: the original's BC-PR target). GAN's
 fake samples go through the same clip as the real ones, or neither.
 
-:data:`ORIGINAL_DISTILLATION` lists the settings that reproduce the original code's distillation.
+:data:`sb3_poplin.variants.ORIGINAL_CODE_SETTINGS` lists the settings that reproduce the original code's choices.
 """
 
 from __future__ import annotations
@@ -40,12 +40,6 @@ from sb3_poplin.sampling import truncated_normal
 
 AVG_UPDATES = ("add", "overwrite")
 DISTILL_TARGETS = ("executed", "planned")
-# the original code's choices (poplin_original.md, section 6): plain whitening updates, Avg overwrites theta, the
-# targets are the unclipped planned actions of the latest iteration only, and the dynamics model's targets are
-# not standardised
-ORIGINAL_DISTILLATION: dict[str, Any] = dict(
-    whitening="plain", avg_update="overwrite", distill_target="planned", distill_window=None, standardise_targets=False
-)
 
 
 def _minibatches(n: int, batch_size: int, device: th.device, generator: th.Generator | None) -> list[th.Tensor]:

@@ -90,6 +90,13 @@ VARIANTS: dict[str, Variant] = {
 }
 POLICY_VARIANTS = tuple(name for name, variant in VARIANTS.items() if variant.has_policy)
 
+# the settings in which the original code differs from our defaults (poplin_original.md, sections 3.2 and 6): plain
+# whitening updates, Avg overwrites theta with the mean perturbation, BC/GAN targets are the unclipped planned actions
+# of the latest iteration only, the dynamics model's targets are not standardised
+ORIGINAL_CODE_SETTINGS: dict[str, Any] = dict(
+    whitening="plain", avg_update="overwrite", distill_target="planned", distill_window=None, standardise_targets=False
+)
+
 # the paper's configurations by name: POPLIN keyword arguments
 NAMED_CONFIGURATIONS: dict[str, dict[str, Any]] = {
     "pets": dict(policy="pets"),

@@ -16,12 +16,13 @@ import torch.nn.functional as F
 
 from conftest import tiny
 from sb3_poplin import POPLIN
-from sb3_poplin.distillation import ORIGINAL_DISTILLATION, Distiller, average_perturbation, gan_distillation
+from sb3_poplin.distillation import Distiller, average_perturbation, gan_distillation
 from sb3_poplin.dynamics import ProbabilisticEnsemble
 from sb3_poplin.planning import PlanResult, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, POPLINPolicy, PolicyNetwork
 from sb3_poplin.saving import SETTINGS_BEFORE_0_3
 from sb3_poplin.tasks import make_env, make_task, registered_tasks
+from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS
 from sb3_poplin.tasks.paper import pets_cheetah_obs_postproc, pets_cheetah_obs_preproc, pets_cheetah_targ_proc
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -170,7 +171,7 @@ def test_planned_targets_are_the_unclipped_outputs_the_planner_chose():
 
 
 def test_original_settings_run_end_to_end_and_are_kept_by_save_load(tmp_path):
-    settings = {k: v for k, v in ORIGINAL_DISTILLATION.items()}
+    settings = dict(ORIGINAL_CODE_SETTINGS)
     model = tiny("poplin-p", distillation="bc", policy_epochs=5, **settings).learn(450)
     assert model.policy.dynamics.standardise_targets is False
     assert th.equal(model.policy.dynamics.target_std, th.ones_like(model.policy.dynamics.target_std))
