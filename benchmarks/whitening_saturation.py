@@ -46,7 +46,7 @@ def main() -> None:
                 pre = policy.whiten(batch) @ policy.weights[0] + policy.biases[0]
             beyond.append(100 * float((pre.abs() > 2).float().mean()))
             std.append(float(pre.std(dim=0).mean()))
-        print(f"| `{mode}` | {min(beyond):.1f}–{max(beyond):.1f} % | {min(std):.2f}–{max(std):.2f} |")
+        print(f"| `{mode}` | {min(beyond):.1f} to {max(beyond):.1f} % | {min(std):.2f} to {max(std):.2f} |")
 
 
 if __name__ == "__main__":

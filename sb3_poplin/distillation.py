@@ -237,7 +237,7 @@ class Distiller:
     :param window: BC and GAN train on the most recent ``window`` planned steps; ``None``: on the steps since the
         last distillation only. Avg always uses the steps since the last update.
     :param avg_step_size: Avg's ``theta <- theta + avg_step_size * mean(omega)``
-    :param avg_update: ``"add"`` (the line above) or ``"overwrite"`` (``theta <- mean(omega)``, the original code)
+    :param avg_update: ``"overwrite"`` (``theta <- mean(omega)``, the original code) or ``"add"`` (the line above)
     :param target: BC's and GAN's target actions: ``"executed"`` (clipped) or ``"planned"`` (before the clip)
     :param whitening: what a whitening update does to the first layer (:data:`sb3_poplin.policies.WHITENING_MODES`)
     :param epochs: BC's maximum epochs, or GAN's epochs
@@ -256,7 +256,7 @@ class Distiller:
         epochs: int,
         batch_size: int,
         noise_var: float,
-        avg_update: str = "add",
+        avg_update: str = "overwrite",
         target: str = "executed",
         whitening: str = "function",
     ) -> None:
