@@ -47,6 +47,7 @@ STEPS = {"Pendulum-v1": 3000, "sb3_poplin/PETSCheetah-v0": 10_000}
 RAW_CHEETAH = "sb3_poplin_ab/PETSCheetahRawModel-v0"
 
 # 0.2.0's behaviour: the settings added since with their earlier behaviour, and 0.2.0's Avg step and window
+FAILED_BELOW = -1000.0
 V0_2: dict[str, Any] = {**SETTINGS_BEFORE_0_3, "avg_step_size": 0.1, "distill_window": 10_000}
 ORIGINAL: dict[str, Any] = dict(ORIGINAL_CODE_SETTINGS)
 ARMS: dict[str, dict[str, Any]] = {
@@ -159,8 +160,8 @@ def report() -> str:
         rows.setdefault((r["task"], r["configuration"], r["arm"]), []).append(r)
     lines = [
         "| task | configuration | arm | seeds | MPC return | policy return | last-3-episodes training return | "
-        "per seed: MPC / policy |",
-        "|---|---|---|---|---|---|---|---|",
+        "failed training episodes | per seed: MPC / policy |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     arm_order = list(ARMS)
     for (task, config, arm), runs in sorted(rows.items(), key=lambda kv: (kv[0][0], kv[0][1], arm_order.index(kv[0][2]))):
@@ -168,13 +169,17 @@ def report() -> str:
         mpc = [float(np.mean(r["mpc_returns"])) for r in runs]
         policy = [float(np.mean(r["policy_returns"])) for r in runs if r["policy_returns"] is not None]
         train = [float(np.mean(r["train_returns"][-3:])) for r in runs if r["train_returns"]]
+        # Pendulum: training episodes of the last 7 below -1000 (a swing-up that failed), over all seeds
+        failed = sum(sum(ret < FAILED_BELOW for ret in r["train_returns"][-7:]) for r in runs)
+        failed_cell = f"{failed} / {sum(len(r['train_returns'][-7:]) for r in runs)}" if task == "Pendulum-v1" else "n/a"
         per_seed = ", ".join(
             f"s{r['seed']}: {np.mean(r['mpc_returns']):.0f} / "
             + ("n/a" if r["policy_returns"] is None else f"{np.mean(r['policy_returns']):.0f}")
             for r in runs
         )
         lines.append(
-            f"| {task} | {config} | {arm} | {len(runs)} | {_cell(mpc)} | {_cell(policy)} | {_cell(train)} | {per_seed} |"
+            f"| {task} | {config} | {arm} | {len(runs)} | {_cell(mpc)} | {_cell(policy)} | {_cell(train)} | {failed_cell} "
+            f"| {per_seed} |"
         )
     return "\n".join(lines)
 
