@@ -41,6 +41,32 @@ TargProc = Callable[[th.Tensor, th.Tensor], th.Tensor]
 ObsPostproc = Callable[[th.Tensor, th.Tensor], th.Tensor]
 
 
+def check_model_hooks(
+    input_exclude: Sequence[int],
+    obs_preproc: ObsPreproc | None,
+    targ_proc: TargProc | None,
+    obs_postproc: ObsPostproc | None,
+    owner: str = "",
+) -> None:
+    """
+    The model hooks must be consistent: ``targ_proc`` and ``obs_postproc`` together (each the other's inverse), and
+    ``obs_preproc`` not with ``input_exclude``.
+
+    :param owner: named at the start of the message (e.g. ``"TaskSpec 'X-v0': "``)
+    :raises ValueError: naming the problem and the fix
+    """
+    if (targ_proc is None) != (obs_postproc is None):
+        raise ValueError(
+            f"{owner}targ_proc and obs_postproc come together (obs_postproc(obs, targ_proc(obs, next_obs)) must give "
+            "next_obs back): pass both, or neither for the default delta target."
+        )
+    if obs_preproc is not None and len(input_exclude):
+        raise ValueError(
+            f"{owner}Pass either input_exclude or obs_preproc (a TaskSpec's model_input_exclude or obs_preproc), not "
+            "both: drop the excluded indices inside obs_preproc."
+        )
+
+
 def delta_target(obs: th.Tensor, next_obs: th.Tensor) -> th.Tensor:
     """The default ``targ_proc``: ``next_obs - obs``."""
     return next_obs - obs
@@ -155,15 +181,7 @@ class ProbabilisticEnsemble(nn.Module):
         super().__init__()
         if ensemble_size < 1:
             raise ValueError(f"ensemble_size must be >= 1, got {ensemble_size}")
-        if (targ_proc is None) != (obs_postproc is None):
-            raise ValueError(
-                "targ_proc and obs_postproc come together (obs_postproc(obs, targ_proc(obs, next_obs)) must give "
-                "next_obs back): pass both, or neither for the default delta target."
-            )
-        if obs_preproc is not None and len(input_exclude):
-            raise ValueError(
-                "Pass either input_exclude or obs_preproc, not both: drop the excluded indices inside obs_preproc."
-            )
+        check_model_hooks(input_exclude, obs_preproc, targ_proc, obs_postproc)
         self.obs_dim = obs_dim
         self.action_dim = action_dim
         self.ensemble_size = ensemble_size

@@ -21,9 +21,14 @@ from sb3_poplin.dynamics import ProbabilisticEnsemble
 from sb3_poplin.planning import PlanResult, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, POPLINPolicy, PolicyNetwork
 from sb3_poplin.saving import SETTINGS_BEFORE_0_3
-from sb3_poplin.tasks import make_env, make_task, registered_tasks
+from sb3_poplin.tasks import TaskSpec, make_env, make_task, registered_tasks
 from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS
-from sb3_poplin.tasks.paper import pets_cheetah_obs_postproc, pets_cheetah_obs_preproc, pets_cheetah_targ_proc
+from sb3_poplin.tasks.paper import (
+    pets_cheetah_obs_postproc,
+    pets_cheetah_obs_preproc,
+    pets_cheetah_reward,
+    pets_cheetah_targ_proc,
+)
 
 DATA = Path(__file__).resolve().parent / "data"
 CHEETAH = "sb3_poplin/PETSCheetah-v0"
@@ -272,3 +277,7 @@ def test_hooks_must_come_in_pairs_and_not_with_exclusions():
         ProbabilisticEnsemble(18, 6, targ_proc=pets_cheetah_targ_proc)
     with pytest.raises(ValueError, match="either input_exclude or obs_preproc"):
         ProbabilisticEnsemble(18, 6, input_exclude=(0,), obs_preproc=pets_cheetah_obs_preproc)
+    with pytest.raises(ValueError, match="TaskSpec 'x-v0': targ_proc and obs_postproc come together"):
+        TaskSpec(env_id="x-v0", reward_fn=pets_cheetah_reward, targ_proc=pets_cheetah_targ_proc)
+    with pytest.raises(ValueError, match="TaskSpec 'x-v0': Pass either input_exclude or obs_preproc"):
+        TaskSpec(env_id="x-v0", reward_fn=pets_cheetah_reward, model_input_exclude=(0,), obs_preproc=pets_cheetah_obs_preproc)

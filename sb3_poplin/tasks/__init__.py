@@ -55,16 +55,10 @@ class TaskSpec:
     description: str = ""
 
     def __post_init__(self) -> None:
-        if (self.targ_proc is None) != (self.obs_postproc is None):
-            raise ValueError(
-                f"TaskSpec {self.env_id!r}: targ_proc and obs_postproc come together (obs_postproc(obs, "
-                "targ_proc(obs, next_obs)) must give next_obs back); pass both or neither."
-            )
-        if self.obs_preproc is not None and self.model_input_exclude:
-            raise ValueError(
-                f"TaskSpec {self.env_id!r}: pass model_input_exclude or obs_preproc, not both (the policy sees the "
-                "observation without model_input_exclude; drop those indices inside obs_preproc for the model)."
-            )
+        from sb3_poplin.dynamics import check_model_hooks
+
+        hooks = (self.model_input_exclude, self.obs_preproc, self.targ_proc, self.obs_postproc)
+        check_model_hooks(*hooks, owner=f"TaskSpec {self.env_id!r}: ")
 
     def model_hooks(self) -> dict[str, Any]:
         """The dynamics model's keyword arguments for this task's observation handling."""
