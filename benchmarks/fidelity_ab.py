@@ -1,7 +1,8 @@
 """
 The fidelity A/B (issue 19): sb3_poplin 0.2.0's distillation and model choices against the original code's, each
 change alone and all together, per configuration and seed. Every finished run writes one small JSON file
-(``benchmarks/fidelity_ab/<task>/<configuration>/<arm>/seed<k>.json``), so an interrupted A/B resumes where it
+(``benchmarks/fidelity_ab/<task>/<configuration>/<arm>/seed<k>.json``; the agent itself goes to
+``benchmarks/fidelity_ab_models/``, not committed, for ``diagnose_mpc.py``), so an interrupted A/B resumes where it
 stopped; ``--report`` turns the files into the table of ``benchmarks/RESULTS.md``.
 
 Arms (POPLIN keyword arguments on top of the task's CPU settings from ``poplin_cpu.yml``):
@@ -42,6 +43,8 @@ from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS
 
 HERE = Path(__file__).resolve().parent
 OUTPUT = HERE / "fidelity_ab"
+# the trained agents (no replay buffer), for the MPC diagnosis (diagnose_mpc.py); not committed
+MODELS = HERE / "fidelity_ab_models"
 STEPS = {"Pendulum-v1": 3000, "sb3_poplin/PETSCheetah-v0": 10_000}
 # the PETSCheetah task as 0.2.0 modelled it (raw observations in, deltas out): the same env under another id
 RAW_CHEETAH = "sb3_poplin_ab/PETSCheetahRawModel-v0"
@@ -85,6 +88,10 @@ def register_raw_cheetah() -> None:
 
 def run_path(task: str, config: str, arm: str, seed: int) -> Path:
     return OUTPUT / task.replace("/", "_") / config.replace("/", "_") / arm / f"seed{seed}.json"
+
+
+def model_path(task: str, config: str, arm: str, seed: int) -> Path:
+    return MODELS / run_path(task, config, arm, seed).relative_to(OUTPUT).with_suffix(".zip")
 
 
 def run_one(task: str, config: str, arm: str, seed: int, steps: int, eval_mpc: int, eval_policy: int) -> dict[str, Any]:
@@ -139,6 +146,9 @@ def run_one(task: str, config: str, arm: str, seed: int, steps: int, eval_mpc: i
         commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE).stdout.strip()
         + ("+changes" if subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=HERE).returncode else ""),
     )
+    saved = model_path(task, config, arm, seed)
+    saved.parent.mkdir(parents=True, exist_ok=True)
+    model.save(saved)
     path = run_path(task, config, arm, seed)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(record, indent=1))
