@@ -22,6 +22,17 @@ Cartpole, Swimmer-v0) under the paper's names: ``--envs`` then picks among them 
 is laid out as the paper's, one column per task named as in the paper. Without it (``--suite all``) the tasks are
 ``--envs`` or every task of the budget's POPLIN file, one row each.
 
+The paper's protocol is reported too: the mean return of the training episodes that ended in the last
+``--paper-window`` steps (3000, as the paper) before the task's smallest budget (``paper_protocol`` in
+``results.json``, a second table in ``results.md``). ``--steps-scale sac:3 td3:3`` trains those algorithms three times
+as long (same evaluation period); the main table stays at the matched step, and a third table gives, per algorithm,
+the first step at which its return reached the ``--reference`` column's final one (default ``POPLIN-P (MPC)``), by
+evaluation (mean curve over seeds) and by the paper's protocol.
+
+A finished run leaves ``compare_complete.json`` in its folder; with it, the run counts as complete without its
+model zip, so a comparison whose small files (``args.yml``, ``config.yml``, ``evaluations*.npz``,
+``0.monitor.csv``, the marker) were committed resumes on another machine.
+
 ``--budget cpu`` (default) takes POPLIN's settings and each task's ``n_timesteps`` from
 ``sb3_poplin/hyperparams/poplin_cpu.yml``; ``--budget paper`` from ``poplin.yml``. The baselines use their
 packaged files (``sac.yml`` ...) with the same ``n_timesteps``. Smoke test::
@@ -58,7 +69,11 @@ ALGOS = ("poplin", *VARIANTS, *(algo for algo in PACKAGED_ALGOS if algo != "popl
 BUDGETS = ("cpu", "paper")
 SUITES = ("all", "paper")
 # files of a run directory sent back by a Ray task (for clusters without a shared file system)
-RUN_FILE_SUFFIXES = (".npz", ".yml", ".txt", ".csv", ".zip")
+RUN_FILE_SUFFIXES = (".npz", ".yml", ".txt", ".csv", ".zip", ".json")
+# written into a run's folder when the run finished (a run with it is complete without its model zip)
+COMPLETE_FILE = "compare_complete.json"
+# the paper's protocol: the training episodes of the last 3000 steps
+PAPER_WINDOW = 3000
 
 
 def hyperparams_dir() -> Path:
@@ -220,7 +235,8 @@ def find_run(job: Job) -> str | None:
         args_file = run / name / "args.yml"
         if not (run.name.startswith(f"{name}_") and args_file.is_file()):
             continue
-        if not ((run / f"{name}.zip").is_file() and (run / "evaluations.npz").is_file()):
+        finished = (run / f"{name}.zip").is_file() or (run / COMPLETE_FILE).is_file()
+        if not (finished and (run / "evaluations.npz").is_file()):
             continue
         with open(args_file) as file:
             args = yaml.load(file, Loader=yaml.UnsafeLoader)  # written by the zoo (an OrderedDict)
@@ -250,6 +266,9 @@ def execute(job: Job, force: bool = False, collect_files: bool = False) -> JobRe
             process = subprocess.run(job.command(), stdout=output, stderr=subprocess.STDOUT, env=env, check=False)
         result.returncode = process.returncode
         result.run_dir = find_run(job) if process.returncode == 0 else None
+        if result.run_dir is not None:
+            marker = {"job": job.name, "command": job.command()[1:], "n_timesteps": job.n_timesteps}
+            (Path(job.log_folder) / result.run_dir / COMPLETE_FILE).write_text(json.dumps(marker, indent=1))
         if result.run_dir is None:
             with open(log_file) as output:
                 result.output_tail = "".join(output.readlines()[-30:])
@@ -376,6 +395,79 @@ def load_curves(result: JobResult) -> list[Curve]:
     return curves
 
 
+@dataclass
+class TrainingEpisodes:
+    """
+    The training episodes of one run (its monitor files), for the paper's protocol.
+
+    :param label: the algorithm's label, e.g. ``"POPLIN-P"`` or ``"SAC"``
+    :param seed: the run's seed
+    :param end_steps: the environment step at which each episode ended
+    :param returns: each episode's return
+    """
+
+    label: str
+    seed: int
+    end_steps: np.ndarray
+    returns: np.ndarray
+
+    def window_mean(self, step: int, window: int) -> float:
+        """
+        :param step: environment step
+        :param window: steps
+        :return: the mean return of the episodes that ended in ``(step - window, step]`` (``nan`` when none did)
+        """
+        inside = (self.end_steps > step - window) & (self.end_steps <= step)
+        return float(self.returns[inside].mean()) if inside.any() else float("nan")
+
+
+def load_training(result: JobResult) -> TrainingEpisodes | None:
+    """
+    :param result: a finished job with a run
+    :return: its training episodes (from ``*.monitor.csv``; several envs merged in the order the episodes ended), or
+        ``None`` when the run has no monitor file
+    """
+    job = result.job
+    assert result.run_dir is not None
+    rows = []
+    for path in sorted((Path(job.log_folder) / result.run_dir).glob("*.monitor.csv")):
+        data = np.loadtxt(path, delimiter=",", skiprows=2, ndmin=2)  # a JSON comment line, then "r,l,t"
+        rows += [tuple(row[:3]) for row in data]
+    if not rows:
+        return None
+    rows.sort(key=lambda row: row[2])
+    returns, lengths, _ = (np.asarray(column, dtype=float) for column in zip(*rows, strict=True))
+    return TrainingEpisodes(job.column.upper(), job.seed, np.cumsum(lengths).astype(int), returns)
+
+
+def first_step_reaching(steps: np.ndarray, values: np.ndarray, target: float) -> int | None:
+    """
+    :param steps: increasing environment steps
+    :param values: a return at each of them (``nan``: not defined yet)
+    :param target: the return to reach
+    :return: the first step whose value is at least ``target`` (``None``: never)
+    """
+    reached = np.flatnonzero(np.nan_to_num(values, nan=-np.inf) >= target)
+    return int(steps[reached[0]]) if len(reached) else None
+
+
+def reach_entry(steps: np.ndarray, per_seed: list[np.ndarray], seeds: list[int], target: float) -> dict[str, Any]:
+    """
+    :param steps: the steps shared by the seeds' curves
+    :param per_seed: each seed's return at those steps
+    :param seeds: the seeds
+    :param target: the return to reach
+    :return: the first step of the mean curve (over seeds) and of each seed's curve that reached ``target``
+    """
+    mean = np.mean(np.stack(per_seed), axis=0)
+    pairs = zip(seeds, per_seed, strict=True)
+    return {
+        "step": first_step_reaching(steps, mean, target),
+        "per_seed": {str(seed): first_step_reaching(steps, values, target) for seed, values in pairs},
+        "last_step": int(steps[-1]),
+    }
+
+
 def value_at(curve: Curve, step: int) -> float:
     """
     :param curve: evaluation curve
@@ -386,14 +478,28 @@ def value_at(curve: Curve, step: int) -> float:
     return float(curve.returns[max(index, 0)])
 
 
-def summarize(env: str, curves: list[Curve], failed: dict[str, int], expected: dict[str, int]) -> dict[str, Any]:
+def summarize(
+    env: str,
+    curves: list[Curve],
+    failed: dict[str, int],
+    expected: dict[str, int],
+    training: list[TrainingEpisodes] | None = None,
+    budget_step: int | None = None,
+    window: int = PAPER_WINDOW,
+    reference: str | None = None,
+) -> dict[str, Any]:
     """
-    Final returns of one task at the matched step (the last evaluation step every run reached).
+    Final returns of one task at the matched step (the last evaluation step every run reached), by the paper's
+    protocol at the task's smallest budget, and the steps at which each column reached the reference's final return.
 
     :param env: gymnasium id
     :param curves: the task's curves
     :param failed: algorithm -> failed runs
     :param expected: algorithm -> planned runs
+    :param training: the task's training episodes (one per run)
+    :param budget_step: the step of the paper's protocol (the task's smallest ``n_timesteps``)
+    :param window: the paper's protocol averages the training episodes that ended in the last ``window`` steps
+    :param reference: the column whose final return the others must reach (``None`` or absent: no reach table)
     :return: the summary written to ``results.json``
     """
     matched = int(min(curve.timesteps[-1] for curve in curves)) if curves else 0
@@ -405,7 +511,40 @@ def summarize(env: str, curves: list[Curve], failed: dict[str, int], expected: d
     for entry in labels.values():
         entry["mean"] = float(np.mean(entry["final"]))
         entry["std"] = float(np.std(entry["final"]))
-    return {"env": env, "matched_step": matched, "labels": labels, "failed": failed, "expected": expected}
+    summary: dict[str, Any] = {"env": env, "matched_step": matched, "labels": labels, "failed": failed, "expected": expected}
+    training = training or []
+    paper: dict[str, dict[str, Any]] = {}
+    if budget_step is not None:
+        for episodes in training:
+            value = episodes.window_mean(budget_step, window)
+            if not np.isnan(value):
+                entry = paper.setdefault(episodes.label, {"seeds": [], "values": []})
+                entry["seeds"].append(episodes.seed)
+                entry["values"].append(value)
+        for entry in paper.values():
+            entry["mean"] = float(np.mean(entry["values"]))
+            entry["std"] = float(np.std(entry["values"]))
+    summary["paper_protocol"] = {"step": budget_step, "window": window, "labels": paper}
+    if reference is None or reference not in labels:
+        return summary
+    reach: dict[str, Any] = {"reference": reference, "target": labels[reference]["mean"], "evaluation": {}}
+    for label in labels:
+        runs = [curve for curve in curves if curve.label == label]
+        length = min(len(curve.timesteps) for curve in runs)
+        values = [curve.returns[:length] for curve in runs]
+        reach["evaluation"][label] = reach_entry(runs[0].timesteps[:length], values, [c.seed for c in runs], reach["target"])
+    paper_reference = paper.get(label_algo(reference).upper())
+    if paper_reference is not None:
+        reach["paper_target"] = paper_reference["mean"]
+        reach["paper_protocol"] = {}
+        for label in dict.fromkeys(episodes.label for episodes in training):
+            trained = [episodes for episodes in training if episodes.label == label]
+            steps = np.unique(np.concatenate([episodes.end_steps for episodes in trained]))
+            values = [np.array([episodes.window_mean(int(step), window) for step in steps]) for episodes in trained]
+            seeds = [episodes.seed for episodes in trained]
+            reach["paper_protocol"][label] = reach_entry(steps, values, seeds, reach["paper_target"])
+    summary["reach"] = reach
+    return summary
 
 
 def format_cell(summary: dict[str, Any], label: str, algo: str) -> str:
@@ -449,6 +588,72 @@ def table_labels(summaries: list[dict[str, Any]]) -> list[str]:
     return labels
 
 
+def _mean_cell(entry: dict[str, Any] | None, key: str) -> str:
+    if entry is None:
+        return "—"
+    n_seeds = len(entry[key])
+    return f"{entry['mean']:.1f} ± {entry['std']:.1f} ({n_seeds} seed{'s' if n_seeds > 1 else ''})"
+
+
+def _reach_cell(entry: dict[str, Any] | None) -> str:
+    if entry is None:
+        return "—"
+    per_seed = ", ".join(f"s{seed}: {'—' if step is None else step}" for seed, step in entry["per_seed"].items())
+    first = f"not by {entry['last_step']}" if entry["step"] is None else str(entry["step"])
+    return f"{first} ({per_seed})"
+
+
+def protocol_lines(summaries: list[dict[str, Any]]) -> list[str]:
+    """
+    :param summaries: one per task
+    :return: the Markdown of the paper-protocol table and (when a reference column ran) the steps-to-reach table
+    """
+    labels: list[str] = []
+    for summary in summaries:
+        labels += [label for label in summary["paper_protocol"]["labels"] if label not in labels]
+    lines: list[str] = []
+    if labels:
+        window = summaries[0]["paper_protocol"]["window"]
+        lines += [
+            "",
+            f"## The paper's protocol: mean return of the training episodes that ended in the last {window} steps",
+            "",
+            "Mean ± std over seeds, at the task's smallest budget (the step column). Training episodes: what each",
+            "algorithm did while learning (POPLIN: MPC), as the paper reports.",
+            "",
+            "| task | step | " + " | ".join(labels) + " |",
+            "|---|---|" + "---|" * len(labels),
+        ]
+        for summary in summaries:
+            paper = summary["paper_protocol"]
+            cells = [_mean_cell(paper["labels"].get(label), "values") for label in labels]
+            lines.append(f"| {summary['env']} | {paper['step']} | " + " | ".join(cells) + " |")
+    reaching = [summary for summary in summaries if "reach" in summary]
+    if reaching:
+        lines += [
+            "",
+            "## Steps to reach the reference's final return",
+            "",
+            "The first step at which the mean curve over seeds reached the reference column's final return (mean over",
+            "seeds at the matched step; by the paper's protocol: its training-episode return), then each seed's",
+            "(— never). Evaluation steps are the evaluation schedule; the paper's protocol checks every episode end.",
+            "",
+            "| task | column | evaluation: target | first step | paper's protocol: target | first step |",
+            "|---|---|---|---|---|---|",
+        ]
+        for summary in reaching:
+            reach = summary["reach"]
+            paper = reach.get("paper_protocol", {})
+            paper_target = f"{reach['paper_target']:.1f}" if "paper_target" in reach else "—"
+            columns = list(reach["evaluation"]) + [label for label in paper if label not in reach["evaluation"]]
+            for label in columns:
+                lines.append(
+                    f"| {summary['env']} | {label} | {reach['target']:.1f} ({reach['reference']}) | "
+                    f"{_reach_cell(reach['evaluation'].get(label))} | {paper_target} | {_reach_cell(paper.get(label))} |"
+                )
+    return lines
+
+
 def write_paper_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> None:
     """
     The paper suite's table, laid out as the paper's: one column per task under its paper name, one row per
@@ -474,7 +679,7 @@ def write_paper_table(summaries: list[dict[str, Any]], budget: str, path: Path) 
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     lines.append("| env id | " + " | ".join(f"`{summary['env']}`" for summary in summaries) + " |")
     lines.append("| matched step | " + " | ".join(str(summary["matched_step"]) for summary in summaries) + " |")
-    path.write_text("\n".join(lines) + "\n")
+    path.write_text("\n".join(lines + protocol_lines(summaries)) + "\n")
 
 
 def write_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> None:
@@ -497,7 +702,7 @@ def write_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> Non
     for summary in summaries:
         cells = [format_cell(summary, label, label_algo(label)) for label in labels]
         lines.append(f"| {summary['env']} | {summary['matched_step']} | " + " | ".join(cells) + " |")
-    path.write_text("\n".join(lines) + "\n")
+    path.write_text("\n".join(lines + protocol_lines(summaries)) + "\n")
 
 
 def plot_curves(env: str, curves: list[Curve], budget: str, path: Path) -> None:
@@ -534,7 +739,13 @@ def plot_curves(env: str, curves: list[Curve], budget: str, path: Path) -> None:
 
 
 def write_report(
-    results: list[JobResult], envs: list[str], budget: str, output: Path, paper_names: dict[str, str] | None = None
+    results: list[JobResult],
+    envs: list[str],
+    budget: str,
+    output: Path,
+    paper_names: dict[str, str] | None = None,
+    window: int = PAPER_WINDOW,
+    reference: str | None = "POPLIN-P (MPC)",
 ) -> Path:
     """
     Write ``results.md``, ``results.json`` and one ``curves_<task>.png`` per task.
@@ -544,6 +755,8 @@ def write_report(
     :param budget: ``"cpu"`` or ``"paper"``
     :param output: the report folder
     :param paper_names: env id -> the paper's task name, for the paper suite's table (``None``: one row per task)
+    :param window: steps of the paper's protocol
+    :param reference: the column whose final return the others must reach
     :return: the table's path
     """
     output.mkdir(parents=True, exist_ok=True)
@@ -557,7 +770,10 @@ def write_report(
             expected[result.job.column] = expected.get(result.job.column, 0) + 1
             if result.run_dir is None:
                 failed[result.job.column] = failed.get(result.job.column, 0) + 1
-        summary = summarize(env, curves, failed, expected)
+        finished = [result for result in env_results if result.run_dir is not None]
+        training = [episodes for result in finished if (episodes := load_training(result)) is not None]
+        budget_step = min((result.job.n_timesteps for result in env_results), default=None)
+        summary = summarize(env, curves, failed, expected, training, budget_step, window, reference)
         summary["name"] = (paper_names or {}).get(env, env)
         summaries.append(summary)
         if curves:
@@ -570,7 +786,7 @@ def write_report(
         write_table(summaries, budget, table)
     runs = [{**asdict(result.job), "run_dir": result.run_dir, "returncode": result.returncode} for result in results]
     suite = "paper" if paper_names else "all"
-    report = {"budget": budget, "suite": suite, "tasks": summaries, "runs": runs}
+    report = {"budget": budget, "suite": suite, "reference": reference, "tasks": summaries, "runs": runs}
     (output / "results.json").write_text(json.dumps(report, indent=2))
     return table
 
@@ -629,6 +845,15 @@ def plan_jobs(options: argparse.Namespace) -> list[Job]:
         if algo not in options.algos or ":" not in setting:
             raise SystemExit(f"--params takes ALGO:KEY:VALUE with ALGO among {options.algos}, got {item!r}")
         params.setdefault(algo, []).append(setting)
+    scales: dict[str, float] = {}
+    for item in options.steps_scale:
+        algo, _, factor = item.partition(":")
+        try:
+            scales[algo] = float(factor)
+        except ValueError:
+            scales[algo] = -1.0
+        if algo not in options.algos or scales[algo] <= 0:
+            raise SystemExit(f"--steps-scale takes ALGO:FACTOR with ALGO among {options.algos} and FACTOR > 0, got {item!r}")
     jobs = []
     log_folder = os.path.abspath(options.log_folder or f"logs/compare-{options.budget}")
     if options.suite == "paper":
@@ -646,14 +871,15 @@ def plan_jobs(options: argparse.Namespace) -> list[Job]:
             raise SystemExit(f"{env} has no entry in {poplin_conf}: pass -n to set its budget.")
         eval_freq = options.eval_freq or max(n_timesteps // options.n_evals, 1)
         for algo in options.algos:
-            conf, algo_params = algo_settings(algo, env, n_timesteps, poplin_conf, params.get(algo, []), options)
+            algo_steps = round(n_timesteps * scales.get(algo, 1.0))
+            conf, algo_params = algo_settings(algo, env, algo_steps, poplin_conf, params.get(algo, []), options)
             for seed in options.seeds:
                 jobs.append(
                     Job(
                         algo=algo,
                         env=env,
                         seed=seed,
-                        n_timesteps=n_timesteps,
+                        n_timesteps=algo_steps,
                         eval_freq=eval_freq,
                         eval_episodes=options.eval_episodes or (3 if options.budget == "cpu" else 5),
                         conf_file=conf,
@@ -696,6 +922,23 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--jobs", type=int, default=2, help="parallel runs (local pool, or CPUs of a local Ray instance)")
     parser.add_argument("--ray-address", help="run as Ray tasks: 'local' (new local instance), 'auto' or a cluster address")
     parser.add_argument("--params", nargs="+", default=[], help="-params overrides per algorithm: ALGO:KEY:VALUE")
+    parser.add_argument(
+        "--steps-scale",
+        nargs="+",
+        default=[],
+        help="ALGO:FACTOR: train ALGO FACTOR times the task's budget (e.g. sac:3 td3:3), same evaluation period",
+    )
+    parser.add_argument(
+        "--paper-window",
+        type=int,
+        default=PAPER_WINDOW,
+        help="the paper's protocol: mean return of the training episodes of the last N steps (default 3000)",
+    )
+    parser.add_argument(
+        "--reference",
+        default="POPLIN-P (MPC)",
+        help="the column whose final return the others must reach (steps-to-reach table; default 'POPLIN-P (MPC)')",
+    )
     parser.add_argument("--log-folder", help="rl-zoo3 log folder (default: logs/compare-<budget>)")
     parser.add_argument("--output", help="report folder (default: <log folder>/report)")
     parser.add_argument("--python", default=sys.executable, help="interpreter of the runs (default: this one)")
@@ -709,8 +952,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     options = parser.parse_args(argv)
     if options.eval_episodes is not None and options.eval_episodes < 2:
         parser.error("--eval-episodes must be >= 2 (rl-zoo3's all_plots needs it)")
-    if options.jobs < 1 or options.n_evals < 1:
-        parser.error("--jobs and --n-evals must be >= 1")
+    if options.jobs < 1 or options.n_evals < 1 or options.paper_window < 1:
+        parser.error("--jobs, --n-evals and --paper-window must be >= 1")
     return options
 
 
@@ -734,7 +977,9 @@ def main(argv: list[str] | None = None) -> int:
     else:
         results = run_local(jobs, options.jobs, options.force)
     output = Path(options.output or os.path.join(jobs[0].log_folder if jobs else ".", "report"))
-    table = write_report(results, list(options.envs), options.budget, output, options.paper_names)
+    table = write_report(
+        results, list(options.envs), options.budget, output, options.paper_names, options.paper_window, options.reference
+    )
     print(table.read_text())
     print(f"Report: {output}")
     n_failed = sum(result.run_dir is None for result in results)

@@ -263,6 +263,85 @@ def test_compare_runs_poplin_variants_by_name(tmp_path: Path) -> None:
     assert jobs["pets"].matches(args) and not jobs["poplin-a"].matches(args)
 
 
+def write_fake_run(job, run_dir: Path, eval_returns: list[float], train_returns: list[float], episode: int) -> None:
+    """A run folder as the zoo and compare.py leave it (no model zip): args, config, evaluations, monitor, marker."""
+    compare_module = sys.modules["compare"]
+    folder = run_dir / job.env
+    folder.mkdir(parents=True)
+    hyperparams = {key.split(":", 1)[0]: compare_module.parse_value(key.split(":", 1)[1]) for key in job.params}
+    args = {"algo": job.zoo_algo, "env": job.env, "seed": job.seed, "n_timesteps": job.n_timesteps}
+    args |= {"eval_freq": job.eval_freq, "eval_episodes": job.eval_episodes, "conf_file": job.conf_file}
+    (folder / "args.yml").write_text(yaml.dump({**args, "hyperparams": hyperparams}))
+    (folder / "config.yml").write_text(yaml.dump(hyperparams))
+    steps = job.eval_freq * np.arange(1, len(eval_returns) + 1)
+    results = np.repeat(np.asarray(eval_returns)[:, None], 2, axis=1)  # two evaluation episodes, same return
+    np.savez(run_dir / "evaluations.npz", timesteps=steps, results=results)
+    lines = ['#{"t_start": 0, "env_id": "%s"}' % job.env, "r,l,t"]
+    lines += [f"{ret},{episode},{k + 1.0}" for k, ret in enumerate(train_returns)]
+    (run_dir / "0.monitor.csv").write_text("\n".join(lines) + "\n")
+    (run_dir / compare_module.COMPLETE_FILE).write_text("{}")
+
+
+def test_compare_reports_the_paper_protocol_and_steps_to_reach(tmp_path: Path) -> None:
+    """SAC trains 3x as long; the tables' numbers equal a hand computation from the fake runs' files."""
+    compare_module = load_compare()
+    common = ["--algos", "pets", "sac", "--envs", "Pendulum-v1", "--seeds", "0", "1", "-n", "3000", "--n-evals", "3"]
+    options = compare_module.parse_args([*common, "--steps-scale", "sac:3", "--log-folder", str(tmp_path)])
+    jobs = compare_module.plan_jobs(options)
+    assert {(job.algo, job.n_timesteps, job.eval_freq) for job in jobs} == {("pets", 3000, 1000), ("sac", 9000, 1000)}
+    # the warm-up rule looks at the algorithm's own budget: the zoo's 10000 warm-up steps on HalfCheetah are kept at
+    # 3 x 10000 steps and cut to a tenth at 10000
+    cheetah = ["--algos", "sac", "td3", "--envs", "HalfCheetah-v5", "--seeds", "0", "-n", "10000"]
+    cheetah_jobs = compare_module.plan_jobs(compare_module.parse_args([*cheetah, "--steps-scale", "sac:3"]))
+    assert {job.algo: (job.n_timesteps, job.params) for job in cheetah_jobs} == {
+        "sac": (30000, []),
+        "td3": (10000, ["learning_starts:1000"]),
+    }
+    evaluations = {
+        ("pets", 0): [-100, -50, 10],
+        ("pets", 1): [-90, -30, 30],  # final mean 20
+        ("sac", 0): [-200, -150, -100, -50, 0, 25, 30, 40, 50],  # reaches 20 at 6000
+        ("sac", 1): [-200, -180, -160, -140, -120, -100, 25, 30, 40],  # at 7000; the mean curve at 7000 (27.5)
+    }
+    training = {
+        ("pets", 0): [-300, -200, -100],  # the last 3000 steps: -200
+        ("pets", 1): [-250, -150, -40],  # -146.67; target -173.33
+        ("sac", 0): [-400 + 50 * k for k in range(1, 10)],  # window means -400 + 50 (k - 1): -150 at 6000
+        ("sac", 1): [-400 + 40 * k for k in range(1, 10)],  # -400 + 40 (k - 1): -160 at 7000; mean -130 at 7000
+    }
+    results = []
+    for job in jobs:
+        run_dir = tmp_path / job.zoo_algo / f"Pendulum-v1_{job.seed + 1}_{job.algo}"
+        write_fake_run(job, run_dir, evaluations[job.algo, job.seed], training[job.algo, job.seed], 1000)
+        found = compare_module.find_run(job)  # complete without a model zip: the marker
+        assert found == str(run_dir.relative_to(tmp_path))
+        results.append(compare_module.JobResult(job, 0, found, reused=True))
+    table = compare_module.write_report(results, options.envs, "cpu", tmp_path / "report", reference="PETS (MPC)")
+    task = json.loads((tmp_path / "report" / "results.json").read_text())["tasks"][0]
+    assert task["matched_step"] == 3000 and task["labels"]["SAC"]["final"] == [-100, -160]
+    paper = task["paper_protocol"]
+    assert paper["step"] == 3000 and paper["window"] == 3000
+    assert paper["labels"]["PETS"]["values"] == pytest.approx([-200, -440 / 3])
+    assert paper["labels"]["SAC"]["values"] == pytest.approx([-300, -320])
+    reach = task["reach"]
+    assert reach["target"] == pytest.approx(20) and reach["paper_target"] == pytest.approx(-520 / 3)
+    assert reach["evaluation"]["SAC"] == {"step": 7000, "per_seed": {"0": 6000, "1": 7000}, "last_step": 9000}
+    assert reach["evaluation"]["PETS (MPC)"]["step"] == 3000
+    assert reach["paper_protocol"]["SAC"] == {"step": 7000, "per_seed": {"0": 6000, "1": 7000}, "last_step": 9000}
+    assert reach["paper_protocol"]["PETS"]["step"] == 3000
+    text = table.read_text()
+    assert "| Pendulum-v1 | 3000 | -173.3 ± 26.7 (2 seeds) | -310.0 ± 10.0 (2 seeds) |" in text
+    assert "| Pendulum-v1 | SAC | 20.0 (PETS (MPC)) | 7000 (s0: 6000, s1: 7000) | -173.3 | 7000 (s0: 6000, s1: 7000) |" in text
+    # a run folder without the marker and without the model zip is an unfinished run
+    for path in tmp_path.glob(f"*/*/{compare_module.COMPLETE_FILE}"):
+        path.unlink()
+    assert compare_module.find_run(jobs[0]) is None
+    with pytest.raises(SystemExit, match=r"--steps-scale takes ALGO:FACTOR .* got 'td3:3'"):
+        compare_module.plan_jobs(compare_module.parse_args([*common, "--steps-scale", "td3:3"]))
+    with pytest.raises(SystemExit, match=r"got 'sac:three'"):
+        compare_module.plan_jobs(compare_module.parse_args([*common, "--steps-scale", "sac:three"]))
+
+
 # ------------------------------------------------------------------------------------------------ the paper suite
 def test_paper_suite_is_in_every_hyperparameter_file() -> None:
     from sb3_poplin.tasks import has_task
