@@ -9,6 +9,7 @@ Arms (POPLIN keyword arguments on top of the task's CPU settings from ``poplin_c
 
 - ``v0.2``: the 0.2.0 behaviour (whitening ``function_from_raw``, Avg ``add`` with step 0.1, executed-action
   targets from a 10 000-step window, standardised model targets; on PETSCheetah no PETS model hooks);
+- ``v0.3``: the package's current defaults (the settings above at ``POPLIN``'s default values; PETS's hooks);
 - ``original``: the original code's (:data:`sb3_poplin.variants.ORIGINAL_CODE_SETTINGS`, PETS's hooks);
 - one change from ``v0.2`` each: ``whitening`` (``function``: the first update starts whitened), ``whitening-plain``,
   ``avg-overwrite``, ``avg-add-1`` (the paper's equation, step 1), ``planned-target``, ``latest-window`` (BC/GAN on
@@ -25,12 +26,12 @@ Protocol per run: ``learn(steps)`` from seed k; the training episodes' returns; 
 from __future__ import annotations
 
 import argparse
+import inspect
 import datetime
 import json
 import multiprocessing
 import os
 import subprocess
-import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -38,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from sb3_poplin import POPLIN
 from sb3_poplin.saving import SETTINGS_BEFORE_0_3
 from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS
 
@@ -53,8 +55,11 @@ RAW_CHEETAH = "sb3_poplin_ab/PETSCheetahRawModel-v0"
 FAILED_BELOW = -1000.0
 V0_2: dict[str, Any] = {**SETTINGS_BEFORE_0_3, "avg_step_size": 0.1, "distill_window": 10_000}
 ORIGINAL: dict[str, Any] = dict(ORIGINAL_CODE_SETTINGS)
+_DEFAULTS = inspect.signature(POPLIN.__init__).parameters
+V0_3: dict[str, Any] = {key: _DEFAULTS[key].default for key in V0_2}
 ARMS: dict[str, dict[str, Any]] = {
     "v0.2": {},
+    "v0.3": V0_3,
     "original": ORIGINAL,
     "whitening": dict(whitening="function"),
     "whitening-plain": dict(whitening="plain"),
@@ -69,7 +74,7 @@ ARMS: dict[str, dict[str, Any]] = {
 
 def uses_pets_hooks(task: str, arm: str) -> bool:
     """PETSCheetah runs with PETS's model hooks in the arms that say so (the others model it as 0.2.0 did)."""
-    return arm in ("original", "pets-hooks")
+    return arm in ("v0.3", "original", "pets-hooks")
 
 
 def register_raw_cheetah() -> None:
@@ -101,7 +106,6 @@ def run_one(task: str, config: str, arm: str, seed: int, steps: int, eval_mpc: i
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from sb3_poplin import POPLIN
     from sb3_poplin.presets import poplin_settings
     from sb3_poplin.tasks import make_env
     from sb3_poplin.variants import configuration
@@ -117,13 +121,14 @@ def run_one(task: str, config: str, arm: str, seed: int, steps: int, eval_mpc: i
     start = time.time()
     model.learn(steps)
     train_time = time.time() - start
-    train_returns = [float(info["r"]) for info in model.ep_info_buffer]
+    train_returns = [float(info["r"]) for info in model.ep_info_buffer or []]
 
     def evaluate(control: str, episodes: int) -> list[float]:
         model.control = control
         env = DummyVecEnv([lambda: Monitor(make_env(env_name))])
         env.seed(1000 + seed)
         returns, _ = evaluate_policy(model, env, n_eval_episodes=episodes, deterministic=True, return_episode_rewards=True)
+        assert isinstance(returns, list)
         return [float(r) for r in returns]
 
     start = time.time()
@@ -165,7 +170,7 @@ def _cell(values: list[float]) -> str:
 
 def report() -> str:
     """The A/B table: per task, configuration and arm, the mean ± std over seeds of each seed's mean return."""
-    rows = {}
+    rows: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for r in load_runs():
         rows.setdefault((r["task"], r["configuration"], r["arm"]), []).append(r)
     lines = [
@@ -233,4 +238,4 @@ def main() -> None:
 
 if __name__ == "__main__":
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    sys.exit(main())
+    main()
