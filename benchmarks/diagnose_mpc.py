@@ -34,6 +34,7 @@ import torch as th
 from mujoco import rollout
 
 from sb3_poplin import POPLIN
+from sb3_poplin.envs.mujoco_variants import PETSCheetahEnv
 from sb3_poplin.analysis.model_error import model_error, mpc_episode
 from sb3_poplin.planning import CEM, ActionSequences
 from sb3_poplin.tasks import make_env, make_task
@@ -74,6 +75,20 @@ class TrueModelPlanner:
         """Observation (x position kept) of full-physics states ``[..., nstate]``."""
         return np.concatenate([state[..., self.qpos], state[..., self.qvel]], axis=-1)
 
+    def observations(self, initial_state: np.ndarray, states: np.ndarray) -> np.ndarray:
+        """
+        :param initial_state: the full-physics state planned from
+        :param states: ``[N, H, nstate]`` the states after each step of the candidates
+        :return: ``[N, H + 1, obs]`` the task's observations of the start and of every step
+        """
+        n = states.shape[0]
+        obs = np.concatenate([np.tile(self.observation(initial_state), (n, 1, 1)), self.observation(states)], axis=1)
+        if isinstance(self.env, PETSCheetahEnv):  # obs[0] is the last step's mean x velocity, not x
+            x = obs[..., 0].copy()
+            obs[:, 1:, 0] = np.diff(x, axis=1) / self.env.dt
+            obs[:, 0, 0] = self.env._get_obs()[0]
+        return obs
+
     def evaluate(self, initial_state: np.ndarray, z: th.Tensor) -> th.Tensor:
         """Returns ``[1, N]`` of candidates ``z [1, N, H * a]`` (scaled actions) rolled out in MuJoCo."""
         n = z.shape[1]
@@ -82,7 +97,7 @@ class TrueModelPlanner:
         control = np.repeat(actions, self.frame_skip, axis=1)  # each action held for frame_skip substeps
         states, _ = rollout.rollout(self.mj_model, self.mj_data, np.tile(initial_state, (n, 1)), control)
         states = states[:, self.frame_skip - 1 :: self.frame_skip]  # [N, H, nstate] after each env step
-        obs = np.concatenate([np.tile(self.observation(initial_state), (n, 1, 1)), self.observation(states)], axis=1)
+        obs = self.observations(initial_state, states)
         obs_t = th.as_tensor(obs, dtype=th.float32)
         act_t = th.as_tensor(actions, dtype=th.float32)
         flat = self.task.reward_fn(

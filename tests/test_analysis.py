@@ -123,3 +123,40 @@ def test_control_curves_from_zoo_runs(tmp_path):
     assert (out / "control.png").exists()
     with pytest.raises(FileNotFoundError, match="No rl-zoo3 run of HalfCheetah-v5"):
         main(["control", "--log-folder", str(tmp_path / "logs"), "--env", "HalfCheetah-v5", "--output", str(out)])
+
+
+@pytest.mark.parametrize("env_id", ["sb3_poplin/PETSCheetah-v0", "HalfCheetah-v5"])
+def test_true_simulator_planner_scores_what_the_env_pays(env_id):
+    """diagnose_mpc.py's true-simulator candidates: their returns equal stepping the env with the same actions."""
+    import importlib.util
+    from pathlib import Path
+
+    import gymnasium as gym
+    import mujoco
+
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "diagnose_mpc.py"
+    spec = importlib.util.spec_from_file_location("diagnose_mpc", path)
+    assert spec is not None and spec.loader is not None
+    diagnose = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(diagnose)
+    kwargs = {} if env_id.startswith("sb3_poplin") else {"exclude_current_positions_from_observation": False}
+    env = gym.make(env_id, **kwargs)
+    model = POPLIN("pets", gym.make(env_id, **kwargs), horizon=4, population_size=6, num_elites=2, seed=0)
+    planner = diagnose.TrueModelPlanner(env, model)
+    env.reset(seed=3)
+    for _ in range(3):  # PETSCheetah: the first observation entry is a velocity from here on
+        env.step(env.action_space.sample())
+    unwrapped = env.unwrapped
+    state = np.empty(mujoco.mj_stateSize(unwrapped.model, planner.spec))
+    mujoco.mj_getState(unwrapped.model, unwrapped.data, state, planner.spec)
+    z = th.rand(1, 6, 4 * 6, generator=th.Generator().manual_seed(0)) * 2.2 - 1.1  # some beyond the bounds
+    scored = planner.evaluate(state, z)[0].numpy()
+    x_before = getattr(unwrapped, "_x_before", None)
+    for i in range(6):
+        mujoco.mj_setState(unwrapped.model, unwrapped.data, state, planner.spec)
+        mujoco.mj_forward(unwrapped.model, unwrapped.data)
+        if x_before is not None:
+            unwrapped._x_before = x_before
+        actions = model.planner.to_env_units(z[0, i].clamp(-1, 1).view(4, 6)).double().numpy()
+        paid = sum(float(unwrapped.step(action)[1]) for action in actions)
+        assert scored[i] == pytest.approx(paid, rel=1e-4, abs=1e-4), i
