@@ -115,6 +115,17 @@ def _bernoulli_entropy(logits: th.Tensor) -> th.Tensor:
     return F.softplus(logits) - logits * th.sigmoid(logits)
 
 
+def clip_straight_through(actions: th.Tensor) -> th.Tensor:
+    """
+    Clip to [-1, 1] in the forward pass, identity in the backward pass: the discriminator sees actions in the bounds
+    while a saturated policy output still gets the gradient that pulls it back (a plain clip passes none).
+
+    :param actions: raw policy outputs
+    :return: the clipped values, differentiable as ``actions``
+    """
+    return actions + (actions.clamp(-1.0, 1.0) - actions).detach()
+
+
 def gan_distillation(
     policy: PolicyNetwork,
     policy_optimizer: th.optim.Optimizer,
@@ -144,8 +155,9 @@ def gan_distillation(
     :param epochs: passes over the data
     :param batch_size: minibatch size
     :param entropy_coef: weight lambda of the discriminator's entropy bonus
-    :param clip: clip real and fake actions to [-1, 1] (executed-action targets); ``False``: neither (planned
-        targets), so that the discriminator cannot tell them apart by ``|a| > 1`` alone
+    :param clip: clip real and fake actions to [-1, 1] (executed-action targets; the fake ones with
+        :func:`clip_straight_through`); ``False``: neither (planned targets), so that the discriminator cannot tell
+        them apart by ``|a| > 1`` alone
     :param generator: random generator
     :return: logged statistics
     """
@@ -159,7 +171,7 @@ def gan_distillation(
             whitened = policy.whiten(states[rows]).detach()
             fake = policy.forward_perturbed(states[rows].unsqueeze(1), z[rows])[:, 0]
             if clip:
-                fake = fake.clamp(-1.0, 1.0)
+                fake = clip_straight_through(fake)
             real_logits = discriminator(th.cat([targets[rows], whitened], dim=-1))
             fake_logits = discriminator(th.cat([fake.detach(), whitened], dim=-1))
             entropy = _bernoulli_entropy(th.cat([real_logits, fake_logits])).mean()

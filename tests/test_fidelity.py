@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from conftest import tiny
 from sb3_poplin import POPLIN
-from sb3_poplin.distillation import Distiller, average_perturbation, gan_distillation
+from sb3_poplin.distillation import Distiller, average_perturbation, clip_straight_through, gan_distillation
 from sb3_poplin.dynamics import ProbabilisticEnsemble
 from sb3_poplin.planning import PlanResult, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, POPLINPolicy, PolicyNetwork
@@ -147,6 +147,29 @@ def test_gan_real_and_fake_go_through_the_same_clip(clip):
         assert all(float(a.abs().max()) <= 1.0 for a in disc.seen)
     else:  # neither clipped: both sides beyond the bounds
         assert float(real.abs().max()) > 1.5 and float(fake.abs().max()) > 1.5
+
+
+def test_clipped_fake_actions_still_pass_the_gradient():
+    raw = th.tensor([-3.0, -0.5, 0.2, 2.5], requires_grad=True)
+    clipped = clip_straight_through(raw)
+    assert th.equal(clipped, th.tensor([-1.0, -0.5, 0.2, 1.0]))
+    (clipped * th.tensor([1.0, 2.0, 3.0, 4.0])).sum().backward()
+    assert th.equal(raw.grad, th.tensor([1.0, 2.0, 3.0, 4.0]))  # a plain clamp gives 0 at -3.0 and 2.5
+    # a policy whose every output is saturated still learns from the generator's loss
+    th.manual_seed(0)
+    policy = PolicyNetwork(3, 2, (16,))
+    with th.no_grad():
+        policy.weights[-1].mul_(500.0)
+        policy.biases[-1].fill_(50.0)
+    states = th.randn(64, 3)
+    assert bool((policy(states).abs() > 1.0).all())
+    before = policy.flat_parameters().clone()
+    disc = Discriminator(2 + 3, (8,))
+    gan_distillation(
+        policy, th.optim.Adam(policy.parameters()), disc, th.optim.Adam(disc.parameters()), states,
+        th.rand(64, 2) * 2 - 1, noise_var=1e-6, epochs=1, clip=True, generator=th.Generator().manual_seed(0),
+    )  # fmt: skip
+    assert not th.equal(policy.flat_parameters(), before)
 
 
 def test_the_discriminator_starts_as_the_original_normc():
