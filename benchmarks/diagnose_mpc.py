@@ -175,7 +175,8 @@ def main() -> None:
     if args.no_record:
         return
     budget = (
-        f"{model.variant} search, H {model.horizon}, pop {model.population_size}, elites {model.num_elites}, "
+        f"{model.variant if args.search == 'own' else 'pets'} search, H {model.horizon}, "
+        f"pop {model.population_size}, elites {model.num_elites}, "
         f"{model.cem_iterations} it"
     )
     h = model.horizon
