@@ -276,7 +276,7 @@ def write_fake_run(job, run_dir: Path, eval_returns: list[float], train_returns:
     steps = job.eval_freq * np.arange(1, len(eval_returns) + 1)
     results = np.repeat(np.asarray(eval_returns)[:, None], 2, axis=1)  # two evaluation episodes, same return
     np.savez(run_dir / "evaluations.npz", timesteps=steps, results=results)
-    lines = ['#{"t_start": 0, "env_id": "%s"}' % job.env, "r,l,t"]
+    lines = ["#" + json.dumps({"t_start": 0, "env_id": job.env}), "r,l,t"]
     lines += [f"{ret},{episode},{k + 1.0}" for k, ret in enumerate(train_returns)]
     (run_dir / "0.monitor.csv").write_text("\n".join(lines) + "\n")
     (run_dir / compare_module.COMPLETE_FILE).write_text("{}")
