@@ -99,8 +99,21 @@ def model_path(task: str, config: str, arm: str, seed: int) -> Path:
     return MODELS / run_path(task, config, arm, seed).relative_to(OUTPUT).with_suffix(".zip")
 
 
-def run_one(task: str, config: str, arm: str, seed: int, steps: int, eval_mpc: int, eval_policy: int) -> dict[str, Any]:
-    """Train and evaluate one (task, configuration, arm, seed); :return: the record written to its JSON file."""
+def code_version() -> str:
+    """The commit checked out, ``+changes`` when the working tree differs from it."""
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE).stdout.strip()
+    return head + ("+changes" if subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=HERE).returncode else "")
+
+
+def run_one(
+    task: str, config: str, arm: str, seed: int, steps: int, eval_mpc: int, eval_policy: int, commit: str
+) -> dict[str, Any]:
+    """
+    Train and evaluate one (task, configuration, arm, seed); :return: the record written to its JSON file.
+
+    :param commit: the code the run executes: the version when the invocation started (its workers import the
+        package once, so commits made while it runs do not change it)
+    """
     import torch as th
     from stable_baselines3.common.evaluation import evaluate_policy
     from stable_baselines3.common.monitor import Monitor
@@ -148,8 +161,7 @@ def run_one(task: str, config: str, arm: str, seed: int, steps: int, eval_mpc: i
         train_time_s=round(train_time, 1),
         eval_time_s=round(time.time() - start, 1),
         date=str(datetime.date.today()),
-        commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE).stdout.strip()
-        + ("+changes" if subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=HERE).returncode else ""),
+        commit=commit,
     )
     saved = model_path(task, config, arm, seed)
     saved.parent.mkdir(parents=True, exist_ok=True)
@@ -224,8 +236,9 @@ def main() -> None:
         if not run_path(args.task, config, arm, seed).exists()
     ]
     print(f"{len(todo)} runs to do", flush=True)
+    commit = code_version()
     with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = {pool.submit(run_one, *job, steps, args.eval_mpc, args.eval_policy): job for job in todo}
+        futures = {pool.submit(run_one, *job, steps, args.eval_mpc, args.eval_policy, commit): job for job in todo}
         for future in as_completed(futures):
             r = future.result()
             policy = "n/a" if r["policy_returns"] is None else f"{np.mean(r['policy_returns']):.1f}"
