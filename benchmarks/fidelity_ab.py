@@ -20,7 +20,7 @@ Protocol per run: ``learn(steps)`` from seed k; the training episodes' returns; 
 
     python benchmarks/fidelity_ab.py --task Pendulum-v1 --configs poplin-p/sep/avg poplin-p/sep/bc \\
         --arms v0.2 original --seeds 0 1 2 3 --jobs 2
-    python benchmarks/fidelity_ab.py --report
+    python benchmarks/fidelity_ab.py --report --paired v0.3
 """
 
 from __future__ import annotations
@@ -211,6 +211,45 @@ def report() -> str:
     return "\n".join(lines)
 
 
+def _seed_means(runs: list[dict[str, Any]], key: str) -> dict[int, float]:
+    return {r["seed"]: float(np.mean(r[key])) for r in runs if r[key] is not None}
+
+
+def paired(reference: str) -> str:
+    """
+    Each arm against ``reference`` on the seeds both ran (the same seed is the same start states and first data):
+    on how many seeds the arm's MPC and policy returns were higher, and the mean paired difference.
+
+    :param reference: the arm every other arm of a (task, configuration) is compared with
+    """
+    cells: dict[tuple[str, str], dict[str, list[dict[str, Any]]]] = {}
+    for r in load_runs():
+        cells.setdefault((r["task"], r["configuration"]), {}).setdefault(r["arm"], []).append(r)
+    lines = [
+        "| task | configuration | arm | against | seeds | MPC higher on | MPC difference | policy higher on | "
+        "policy difference |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    arm_order = list(ARMS)
+    for (task, config), arms in sorted(cells.items()):
+        if reference not in arms:
+            continue
+        for arm in sorted(arms, key=arm_order.index):
+            if arm == reference:
+                continue
+            row = [f"| {task} | {config} | {arm} | {reference} "]
+            seeds: set[int] = set()
+            for key in ("mpc_returns", "policy_returns"):
+                ours, theirs = _seed_means(arms[arm], key), _seed_means(arms[reference], key)
+                shared = sorted(set(ours) & set(theirs))
+                seeds |= set(shared)
+                diffs = [ours[k] - theirs[k] for k in shared]
+                higher = f"{sum(d > 0 for d in diffs)} / {len(diffs)}" if diffs else "n/a"
+                row.append(f"| {higher} | {np.mean(diffs):+.0f} " if diffs else "| n/a | n/a ")
+            lines.append(row[0] + f"| {len(seeds)} " + "".join(row[1:]) + "|")
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="Pendulum-v1", choices=list(STEPS))
@@ -222,9 +261,13 @@ def main() -> None:
     parser.add_argument("--eval-policy", type=int, default=10, help="policy-control evaluation episodes per run")
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one thread each)")
     parser.add_argument("--report", action="store_true", help="print the table of the finished runs and exit")
+    parser.add_argument("--paired", metavar="ARM", default=None, help="with --report: also each arm against ARM, seed by seed")
     args = parser.parse_args()
     if args.report:
         print(report())
+        if args.paired:
+            print()
+            print(paired(args.paired))
         return
     steps = args.steps or STEPS[args.task]
     # seeds outermost: the first seeds of every arm finish first

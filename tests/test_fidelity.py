@@ -304,3 +304,34 @@ def test_hooks_must_come_in_pairs_and_not_with_exclusions():
         TaskSpec(env_id="x-v0", reward_fn=pets_cheetah_reward, targ_proc=pets_cheetah_targ_proc)
     with pytest.raises(ValueError, match="TaskSpec 'x-v0': Pass either input_exclude or obs_preproc"):
         TaskSpec(env_id="x-v0", reward_fn=pets_cheetah_reward, model_input_exclude=(0,), obs_preproc=pets_cheetah_obs_preproc)
+
+
+# ---------------------------------------------------------------- the A/B's report
+def test_fidelity_ab_pairs_arms_seed_by_seed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("fidelity_ab", DATA.parent.parent / "benchmarks" / "fidelity_ab.py")
+    assert spec is not None and spec.loader is not None
+    ab = importlib.util.module_from_spec(spec)
+    sys.modules["fidelity_ab"] = ab
+    spec.loader.exec_module(ab)
+    monkeypatch.setattr(ab, "OUTPUT", tmp_path)
+    # reference v0.3 on seeds 0-2; "original" on seeds 1-3: only seeds 1 and 2 are shared
+    values = {
+        "v0.3": {0: (10.0, -5.0), 1: (20.0, -7.0), 2: (30.0, 1.0)},
+        "original": {1: (25.0, -8.0), 2: (29.0, 4.0), 3: (0, 0)},
+    }
+    for arm, seeds in values.items():
+        for seed, (mpc, policy) in seeds.items():
+            path = ab.run_path("Pendulum-v1", "poplin-p/sep/bc", arm, seed)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            record = dict(task="Pendulum-v1", configuration="poplin-p/sep/bc", arm=arm, seed=seed, train_returns=[-1.0])
+            # two episodes each, whose mean is the value above
+            record.update(mpc_returns=[mpc - 1.0, mpc + 1.0], policy_returns=[policy - 2.0, policy + 2.0])
+            path.write_text(json.dumps(record))
+    table = ab.paired("v0.3").splitlines()
+    assert len(table) == 3  # header, rule, one row
+    # MPC: +5 (seed 1), -1 (seed 2) -> higher on 1 / 2, mean +2; policy: -1, +3 -> 1 / 2, mean +1
+    assert table[2] == "| Pendulum-v1 | poplin-p/sep/bc | original | v0.3 | 2 | 1 / 2 | +2 | 1 / 2 | +1 |"
+    assert ab.paired("whitening").splitlines()[2:] == []  # no run of the reference arm: no rows
