@@ -34,6 +34,8 @@ import torch as th
 from mujoco import rollout
 
 from sb3_poplin import POPLIN
+from gymnasium.envs.mujoco.half_cheetah_v5 import HalfCheetahEnv
+
 from sb3_poplin.envs.mujoco_variants import PETSCheetahEnv
 from sb3_poplin.analysis.model_error import model_error, mpc_episode
 from sb3_poplin.planning import CEM, ActionSequences
@@ -52,8 +54,19 @@ class TrueModelPlanner:
     :param model: the trained agent (its CEM settings and task reward are used)
     """
 
+    # the envs whose observations this planner rebuilds from MuJoCo states (and that never terminate)
+    SUPPORTED = (HalfCheetahEnv, PETSCheetahEnv)
+
     def __init__(self, env: gym.Env, model: POPLIN) -> None:
         self.env = env.unwrapped
+        nq, nv = self.env.model.nq, self.env.model.nv
+        if type(self.env) not in self.SUPPORTED or env.observation_space.shape != (nq + nv,):
+            raise ValueError(
+                f"The true-simulator planner rebuilds observations as [qpos, qvel] (HalfCheetah-v5 with x kept) or "
+                f"PETSCheetah's velocity observation, and never terminates; {type(self.env).__name__} with observation "
+                f"shape {env.observation_space.shape} is not one of them: its scores would not be what the env pays. "
+                f"Pass --true-steps 0 to skip the true-simulator planning."
+            )
         self.task = make_task(model.task_id)
         self.horizon = model.horizon
         self.cem = CEM(model.population_size, model.num_elites, model.cem_iterations, model.cem_alpha)
@@ -67,7 +80,6 @@ class TrueModelPlanner:
         self.spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
         self.generator = th.Generator().manual_seed(0)
         self.mean = self.space.initial_mean(1, th.device("cpu"))
-        nq, nv = self.mj_model.nq, self.mj_model.nv
         self.qpos = slice(1, 1 + nq)  # full-physics state: [time, qpos, qvel, ...]
         self.qvel = slice(1 + nq, 1 + nq + nv)
 
@@ -120,7 +132,9 @@ class TrueModelPlanner:
 
 
 def true_model_episode(env: gym.Env, model: POPLIN, steps: int, seed: int) -> tuple[float, float]:
-    """:return: the return of ``steps`` steps planned with the true simulator, and seconds per step"""
+    """:return: the return of ``steps`` steps planned with the true simulator, and seconds per step (0, nan: none)"""
+    if steps == 0:
+        return 0.0, float("nan")
     planner = TrueModelPlanner(env, model)
     env.reset(seed=seed)
     total, start = 0.0, time.perf_counter()

@@ -125,20 +125,25 @@ def test_control_curves_from_zoo_runs(tmp_path):
         main(["control", "--log-folder", str(tmp_path / "logs"), "--env", "HalfCheetah-v5", "--output", str(out)])
 
 
-@pytest.mark.parametrize("env_id", ["sb3_poplin/PETSCheetah-v0", "HalfCheetah-v5"])
-def test_true_simulator_planner_scores_what_the_env_pays(env_id):
-    """diagnose_mpc.py's true-simulator candidates: their returns equal stepping the env with the same actions."""
+def load_diagnose_mpc():
     import importlib.util
     from pathlib import Path
-
-    import gymnasium as gym
-    import mujoco
 
     path = Path(__file__).resolve().parent.parent / "benchmarks" / "diagnose_mpc.py"
     spec = importlib.util.spec_from_file_location("diagnose_mpc", path)
     assert spec is not None and spec.loader is not None
     diagnose = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(diagnose)
+    return diagnose
+
+
+@pytest.mark.parametrize("env_id", ["sb3_poplin/PETSCheetah-v0", "HalfCheetah-v5"])
+def test_true_simulator_planner_scores_what_the_env_pays(env_id):
+    """diagnose_mpc.py's true-simulator candidates: their returns equal stepping the env with the same actions."""
+    import gymnasium as gym
+    import mujoco
+
+    diagnose = load_diagnose_mpc()
     kwargs = {} if env_id.startswith("sb3_poplin") else {"exclude_current_positions_from_observation": False}
     env = gym.make(env_id, **kwargs)
     model = POPLIN("pets", gym.make(env_id, **kwargs), horizon=4, population_size=6, num_elites=2, seed=0)
@@ -160,3 +165,16 @@ def test_true_simulator_planner_scores_what_the_env_pays(env_id):
         actions = model.planner.to_env_units(z[0, i].clamp(-1, 1).view(4, 6)).double().numpy()
         paid = sum(float(unwrapped.step(action)[1]) for action in actions)
         assert scored[i] == pytest.approx(paid, rel=1e-4, abs=1e-4), i
+
+
+@pytest.mark.parametrize(
+    "env_id, kwargs", [("Hopper-v5", {"exclude_current_positions_from_observation": False}), ("HalfCheetah-v5", {})]
+)
+def test_true_simulator_planner_refuses_envs_whose_observation_it_cannot_rebuild(env_id, kwargs):
+    """Hopper clips its velocities and terminates; HalfCheetah without x is not [qpos, qvel]: both raise, naming the fix."""
+    import gymnasium as gym
+
+    diagnose = load_diagnose_mpc()
+    model = POPLIN("pets", gym.make(env_id, **kwargs), horizon=2, population_size=4, num_elites=2, seed=0)
+    with pytest.raises(ValueError, match=r"observation shape .* is not one of them.*--true-steps 0"):
+        diagnose.TrueModelPlanner(gym.make(env_id, **kwargs), model)
