@@ -10,7 +10,8 @@ so an interrupted comparison resumes (``--force`` reruns).
 
 ``--algos`` takes rl-zoo3 names and POPLIN's variants: ``poplin`` runs the variant of POPLIN's file
 (POPLIN-P); ``poplin-p``, ``poplin-a``, ``pets`` and ``rs`` run the zoo algorithm ``poplin`` with that
-``policy`` and the task's settings from the same file, each in its own column.
+``policy`` and the task's settings from the same file, each in its own column (``rs`` with a population of
+``population_size x cem_iterations``, the candidates CEM evaluates per step).
 
 The report (``--output``) has ``results.md``, a Markdown table of the final evaluation return (mean ± std
 over seeds) at the step every algorithm of the task reached, ``results.json`` with the numbers, and
@@ -47,6 +48,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import inspect
 import json
 import os
 import subprocess
@@ -58,6 +60,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from sb3_poplin import POPLIN
 from sb3_poplin.presets import HYPERPARAMS_DIR, PACKAGED_ALGOS
 from sb3_poplin.tasks.paper_suite import PAPER_TASKS
 from sb3_poplin.variants import POLICY_VARIANTS
@@ -805,6 +808,10 @@ def algo_settings(
     :param params: ``--params`` settings for this algorithm (``KEY:VALUE``)
     :param options: the command line
 
+    Random shooting (``rs``) samples ``population_size x cem_iterations`` action sequences in its one round, the
+    number of candidates CEM evaluates per step with the same file's settings (the original code's 2500 = 500 x 5),
+    unless ``--params`` sets its population.
+
     A baseline whose random warm-up (``learning_starts``) would take half the budget or more, as the zoo's MuJoCo
     settings (5000-10000 steps) do with CPU budgets, starts learning after a tenth of the budget instead, unless
     ``--params`` sets it or ``--keep-learning-starts`` is given.
@@ -820,6 +827,12 @@ def algo_settings(
         return None, params  # the zoo's own file
     if algo in VARIANTS and not any(setting.startswith("policy:") for setting in params):
         params = [f"policy:{algo!r}", *params]  # the task's settings, with this variant's own defaults
+    if algo == "rs" and not any(setting.startswith("population_size:") for setting in params):
+        # as many model rollouts per step as CEM's iterations make (the original: 2500 = 500 x 5)
+        defaults = inspect.signature(POPLIN.__init__).parameters
+        population = int(entry.get("population_size", defaults["population_size"].default))
+        iterations = int(entry.get("cem_iterations", defaults["cem_iterations"].default))
+        params = [*params, f"population_size:{population * iterations}"]
     learning_starts = int(entry.get("learning_starts", 0))
     overridden = any(setting.startswith("learning_starts:") for setting in params)
     if not is_poplin and learning_starts >= n_timesteps / 2 and not overridden:

@@ -242,17 +242,27 @@ def load_compare():
 
 def test_compare_runs_poplin_variants_by_name(tmp_path: Path) -> None:
     compare_module = load_compare()
-    algos = ["--algos", "pets", "poplin-a", "poplin", "sac", "--envs", "Pendulum-v1"]
+    algos = ["--algos", "pets", "poplin-a", "poplin", "sac", "rs", "--envs", "Pendulum-v1"]
     options = compare_module.parse_args(
         [*algos, "--seeds", "0", "-n", "400", "--log-folder", str(tmp_path), "--params", "pets:horizon:5"]
     )
     jobs = {job.algo: job for job in compare_module.plan_jobs(options)}
-    assert [job.zoo_algo for job in jobs.values()] == ["poplin", "poplin", "poplin", "sac"]
+    assert [job.zoo_algo for job in jobs.values()] == ["poplin", "poplin", "poplin", "sac", "poplin"]
     assert jobs["pets"].params == ["policy:'pets'", "horizon:5"]
     assert jobs["poplin-a"].params == ["policy:'poplin-a'"]
+    # random shooting evaluates as many candidates per step as CEM: poplin_cpu.yml's 200 x 3, the paper file's 500 x 5
+    assert jobs["rs"].params == ["policy:'rs'", "population_size:600"]
+    paper = compare_module.parse_args(
+        ["--algos", "rs", "--envs", "Pendulum-v1", "--budget", "paper", "--log-folder", str(tmp_path)]
+    )
+    assert compare_module.plan_jobs(paper)[0].params == ["policy:'rs'", "population_size:2500"]
+    given = compare_module.parse_args(
+        ["--algos", "rs", "--envs", "Pendulum-v1", "--params", "rs:population_size:50", "--log-folder", str(tmp_path)]
+    )
+    assert compare_module.plan_jobs(given)[0].params == ["policy:'rs'", "population_size:50"]
     assert jobs["pets"].command()[3:8] == ["train", "--algo", "poplin", "--env", "Pendulum-v1"]
     # report columns: the variant that runs (poplin alone: the file's variant)
-    assert [job.column for job in jobs.values()] == ["pets", "poplin-a", "poplin-p", "sac"]
+    assert [job.column for job in jobs.values()] == ["pets", "poplin-a", "poplin-p", "sac", "rs"]
     assert jobs["pets"].name != jobs["poplin-a"].name  # separate log files
     assert compare_module.label_algo("PETS (MPC)") == "pets"
     assert compare_module.label_algo("POPLIN-A (policy)") == "poplin-a"
