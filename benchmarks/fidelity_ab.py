@@ -13,7 +13,9 @@ Arms (POPLIN keyword arguments on top of the task's CPU settings from ``poplin_c
 - ``original``: the original code's (:data:`sb3_poplin.variants.ORIGINAL_CODE_SETTINGS`, PETS's hooks);
 - one change from ``v0.2`` each: ``whitening`` (``function``: the first update starts whitened), ``whitening-plain``,
   ``avg-overwrite``, ``avg-add-1`` (the paper's equation, step 1), ``planned-target``, ``latest-window`` (BC/GAN on
-  the latest episode only), ``raw-targets`` (model targets not standardised), ``pets-hooks`` (PETSCheetah only).
+  the latest episode only), ``raw-targets`` (model targets not standardised), ``pets-hooks`` (PETSCheetah only);
+- one change from ``v0.3`` each (the defaults plus one of the original's choices): ``v0.3+whitening-plain``,
+  ``v0.3+avg-add-1``, ``v0.3+planned-target``, ``v0.3+latest-window``, ``v0.3+raw-targets``.
 
 Protocol per run: ``learn(steps)`` from seed k; the training episodes' returns; then MPC and policy control
 (POPLIN-A/P) on deterministic evaluation episodes of a fresh env seeded 1000 + k.
@@ -70,11 +72,14 @@ ARMS: dict[str, dict[str, Any]] = {
     "raw-targets": dict(standardise_targets=False),
     "pets-hooks": {},
 }
+# one change from the defaults each: ``v0.3+planned-target`` ... (the same changes as the single arms above)
+SINGLE_CHANGES = ("whitening-plain", "avg-add-1", "planned-target", "latest-window", "raw-targets")
+ARMS.update({f"v0.3+{name}": {**V0_3, **ARMS[name]} for name in SINGLE_CHANGES})
 
 
 def uses_pets_hooks(task: str, arm: str) -> bool:
     """PETSCheetah runs with PETS's model hooks in the arms that say so (the others model it as 0.2.0 did)."""
-    return arm in ("v0.3", "original", "pets-hooks")
+    return arm in ("v0.3", "original", "pets-hooks") or arm.startswith("v0.3+")
 
 
 def register_raw_cheetah() -> None:
