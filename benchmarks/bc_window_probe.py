@@ -20,6 +20,10 @@ new agents:
 It also reports the share of the window's executed action entries at the bounds (``|a| = 1``: the planned action was
 clipped) and their variance, against which the latest-episode MSE of each clone reads.
 
+And for the agents of both arms (``v0.3``: executed, clipped targets from the window; ``original``: the planned
+unclipped targets of the latest episode), the raw output of the policy network on one policy-control episode: the
+share of entries beyond ±1 (where the executed action is the bound) and the mean ``|output|``.
+
 Every BC call is the package's ``behaviour_cloning`` with the agent's epochs, batch size and learning rate.
 
     python benchmarks/bc_window_probe.py --seeds 0 1 2 3
@@ -124,18 +128,42 @@ def probe(seed: int, episodes: int, episode_length: int, gains: list[float]) -> 
     return result
 
 
+def raw_outputs(seed: int, arm: str) -> dict[str, float] | None:
+    """One policy-control episode of the ``arm`` agent: its return and its network's raw output statistics."""
+    path = model_file(seed, arm)
+    if not path.exists():
+        return None
+    model = POPLIN.load(path, device="cpu")
+    actor = model.policy.actor
+    assert actor is not None
+    model.control = "policy"
+    env = make_env(TASK)
+    obs, _ = env.reset(seed=1000 + seed)
+    raws, total, done = [], 0.0, False
+    while not done:
+        with th.no_grad():
+            raws.append(actor(th.as_tensor(obs, dtype=th.float32)[None])[0])
+        action, _ = model.predict(obs, deterministic=True)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        total += float(reward)
+        done = terminated or truncated
+    raw = th.stack(raws)
+    return {"return": total, "beyond 1": float((raw.abs() > 1).float().mean()), "mean |output|": float(raw.abs().mean())}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
     parser.add_argument("--episodes", type=int, default=10, help="policy-control episodes (the A/B's 10)")
     parser.add_argument("--episode", type=int, default=1000, help="rows of the latest episode")
     parser.add_argument("--gains", nargs="+", type=float, default=[3.0, 10.0], help="output gains of the saved policy")
-    parser.add_argument("--output", type=Path, default=HERE / "fidelity_ab" / "bc_window_probe.json")
+    parser.add_argument("--output", type=Path, default=HERE / "analysis" / "bc_window_probe.json")
     args = parser.parse_args()
     th.set_num_threads(1)
     results = []
     for seed in args.seeds:
         r = probe(seed, args.episodes, args.episode, args.gains)
+        r["raw outputs"] = {arm: raw_outputs(seed, arm) for arm in ("v0.3", "original")}
         results.append(r)
         print(
             f"seed {seed} ({r['window_rows']} rows): "
@@ -145,6 +173,9 @@ def main() -> None:
             + ", ".join(f"{k.removesuffix(' latest-episode MSE')} {v:.3f}" for k, v in r.items() if k.endswith("MSE")),
             flush=True,
         )
+        for arm, stats in r["raw outputs"].items():
+            if stats is not None:
+                print(f"  {arm} policy, one episode: " + ", ".join(f"{k} {v:.2f}" for k, v in stats.items()), flush=True)
     args.output.write_text(json.dumps(results, indent=1))
 
 

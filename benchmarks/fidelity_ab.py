@@ -10,7 +10,8 @@ Arms (POPLIN keyword arguments on top of the task's CPU settings from ``poplin_c
 - ``v0.2``: the 0.2.0 behaviour (whitening ``function_from_raw``, Avg ``add`` with step 0.1, executed-action
   targets from a 10 000-step window, standardised model targets; on PETSCheetah no PETS model hooks);
 - ``v0.3``: the package's current defaults (the settings above at ``POPLIN``'s default values; PETS's hooks);
-- ``original``: the original code's (:data:`sb3_poplin.variants.ORIGINAL_CODE_SETTINGS`, PETS's hooks);
+- ``original``: the original code's (:func:`sb3_poplin.variants.original_code_settings`, PETS's hooks; POPLIN-A
+  clones the executed actions, as the original's BC-AR/BC-AI);
 - one change from ``v0.2`` each: ``whitening`` (``function``: the first update starts whitened), ``whitening-plain``,
   ``avg-overwrite``, ``avg-add-1`` (the paper's equation, step 1), ``planned-target``, ``latest-window`` (BC/GAN on
   the latest episode only), ``raw-targets`` (model targets not standardised), ``pets-hooks`` (PETSCheetah only);
@@ -43,7 +44,7 @@ import numpy as np
 
 from sb3_poplin import POPLIN
 from sb3_poplin.saving import SETTINGS_BEFORE_0_3
-from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS
+from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, configuration, original_code_settings
 
 HERE = Path(__file__).resolve().parent
 OUTPUT = HERE / "fidelity_ab"
@@ -126,7 +127,6 @@ def run_one(
 
     from sb3_poplin.presets import poplin_settings
     from sb3_poplin.tasks import make_env
-    from sb3_poplin.variants import configuration
 
     th.set_num_threads(1)
     env_name = task
@@ -134,7 +134,8 @@ def run_one(
         register_raw_cheetah()
         env_name = RAW_CHEETAH
     cpu = {k: v for k, v in poplin_settings(task).items() if k not in ("policy", "noise", "n_timesteps")}
-    settings = {**cpu, **configuration(config), **V0_2, **ARMS[arm]}
+    arm_settings = original_code_settings(configuration(config)["policy"]) if arm == "original" else ARMS[arm]
+    settings = {**cpu, **configuration(config), **V0_2, **arm_settings}
     model = POPLIN(env=make_env(env_name), seed=seed, **settings)
     start = time.time()
     model.learn(steps)

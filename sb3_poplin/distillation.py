@@ -22,7 +22,7 @@ The target actions are either the *executed* ones (clipped to [-1, 1]) or the *p
 (POPLIN-P: the network as it was while planning, with the executed perturbation: the original's BC-PR target). GAN's
 fake samples go through the same clip as the real ones, or neither.
 
-:data:`sb3_poplin.variants.ORIGINAL_CODE_SETTINGS` lists the settings that reproduce the original code's choices.
+:func:`sb3_poplin.variants.original_code_settings` gives the settings that reproduce the original code's choices.
 """
 
 from __future__ import annotations

@@ -90,12 +90,29 @@ VARIANTS: dict[str, Variant] = {
 }
 POLICY_VARIANTS = tuple(name for name, variant in VARIANTS.items() if variant.has_policy)
 
-# the settings in which the original code differs from our defaults (poplin_original.md, sections 3.2 and 6): plain
-# whitening updates, Avg overwrites theta with the mean perturbation, BC/GAN targets are the unclipped planned actions
-# of the latest iteration only, the dynamics model's targets are not standardised
+# the settings in which the original code's POPLIN-P differs from our defaults (poplin_original.md, sections 3.2 and
+# 6): plain whitening updates, Avg overwrites theta with the mean perturbation, BC/GAN targets are the unclipped
+# planned actions of the latest iteration only, the dynamics model's targets are not standardised
 ORIGINAL_CODE_SETTINGS: dict[str, Any] = dict(
     whitening="plain", avg_update="overwrite", distill_target="planned", distill_window=None, standardise_targets=False
 )
+
+
+def original_code_settings(policy: str) -> dict[str, Any]:
+    """
+    The settings that reproduce the original code's choices for one variant: :data:`ORIGINAL_CODE_SETTINGS`, except
+    that the original's POPLIN-A cloned the *executed* actions (BC-AR: the real ``clip(pi(s) + delta)``; BC-AI adds
+    the elites' clipped actions), not the planned ones (poplin_original.md, section 6.2).
+
+    :param policy: the variant (``"poplin-a"``, ``"poplin-p"``, ``"pets"``, ``"rs"``)
+    :return: POPLIN keyword arguments
+    """
+    check_choice("policy", policy, list(VARIANTS))
+    settings = dict(ORIGINAL_CODE_SETTINGS)
+    if policy == "poplin-a":
+        settings["distill_target"] = "executed"
+    return settings
+
 
 # the paper's configurations by name: POPLIN keyword arguments
 NAMED_CONFIGURATIONS: dict[str, dict[str, Any]] = {

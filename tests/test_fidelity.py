@@ -22,7 +22,7 @@ from sb3_poplin.planning import PlanResult, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, POPLINPolicy, PolicyNetwork
 from sb3_poplin.saving import SETTINGS_BEFORE_0_3
 from sb3_poplin.tasks import TaskSpec, make_env, make_task, registered_tasks
-from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS
+from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, original_code_settings
 from sb3_poplin.tasks.paper import (
     pets_cheetah_obs_postproc,
     pets_cheetah_obs_preproc,
@@ -199,7 +199,8 @@ def test_planned_targets_are_the_unclipped_outputs_the_planner_chose():
 
 
 def test_original_settings_run_end_to_end_and_are_kept_by_save_load(tmp_path):
-    settings = dict(ORIGINAL_CODE_SETTINGS)
+    settings = original_code_settings("poplin-p")
+    assert settings == ORIGINAL_CODE_SETTINGS
     model = tiny("poplin-p", distillation="bc", policy_epochs=5, **settings).learn(450)
     assert model.policy.dynamics.standardise_targets is False
     assert th.equal(model.policy.dynamics.target_std, th.ones_like(model.policy.dynamics.target_std))
@@ -212,6 +213,16 @@ def test_original_settings_run_end_to_end_and_are_kept_by_save_load(tmp_path):
     start = np.ones(1, dtype=bool)
     model.set_random_seed(3), loaded.set_random_seed(3)
     np.testing.assert_array_equal(model.predict(obs, episode_start=start)[0], loaded.predict(obs, episode_start=start)[0])
+
+
+def test_the_original_poplin_a_clones_the_executed_actions():
+    """The original's POPLIN-A (BC-AR/BC-AI) regressed onto clip(pi(s) + delta); only POPLIN-P's BC-PR was unclipped."""
+    settings = original_code_settings("poplin-a")
+    assert settings == {**ORIGINAL_CODE_SETTINGS, "distill_target": "executed"}
+    model = tiny("poplin-a", policy_epochs=5, **settings).learn(450)
+    assert model.distiller.target == "executed" and model.distiller.window is None
+    with pytest.raises(ValueError, match=r"Unknown policy 'sac'"):
+        original_code_settings("sac")
 
 
 def test_bad_fidelity_settings_name_the_choices():
