@@ -251,7 +251,7 @@ def paired(reference: str) -> str:
                 seeds |= set(shared)
                 diffs = [ours[k] - theirs[k] for k in shared]
                 higher = f"{sum(d > 0 for d in diffs)} / {len(diffs)}" if diffs else "n/a"
-                row.append(f"| {higher} | {np.mean(diffs):+.0f} " if diffs else "| n/a | n/a ")
+                row.append(f"| {higher} | {int(round(float(np.mean(diffs)))):+d} " if diffs else "| n/a | n/a ")
             lines.append(row[0] + f"| {len(seeds)} " + "".join(row[1:]) + "|")
     return "\n".join(lines)
 
