@@ -9,7 +9,9 @@ Arms (POPLIN keyword arguments on top of the task's CPU settings from ``poplin_c
 
 - ``v0.2``: the 0.2.0 behaviour (whitening ``function_from_raw``, Avg ``add`` with step 0.1, executed-action
   targets from a 10 000-step window, standardised model targets; on PETSCheetah no PETS model hooks);
-- ``v0.3``: the package's current defaults (the settings above at ``POPLIN``'s default values; PETS's hooks);
+- ``v0.3``: the defaults of the 0.3.0 line when the A/B ran (whitening ``function``, Avg ``overwrite``, executed
+  targets from the 10 000-step window, standardised model targets; PETS's hooks), spelled out;
+- ``defaults``: the settings above at ``POPLIN``'s current default values (PETS's hooks);
 - ``original``: the original code's (:func:`sb3_poplin.variants.original_code_settings`, PETS's hooks; POPLIN-A
   clones the executed actions, as the original's BC-AR/BC-AI);
 - one change from ``v0.2`` each: ``whitening`` (``function``: the first update starts whitened), ``whitening-plain``,
@@ -58,11 +60,22 @@ RAW_CHEETAH = "sb3_poplin_ab/PETSCheetahRawModel-v0"
 FAILED_BELOW = -1000.0
 V0_2: dict[str, Any] = {**SETTINGS_BEFORE_0_3, "avg_step_size": 0.1, "distill_window": 10_000}
 ORIGINAL: dict[str, Any] = dict(ORIGINAL_CODE_SETTINGS)
-_DEFAULTS = inspect.signature(POPLIN.__init__).parameters
-V0_3: dict[str, Any] = {key: _DEFAULTS[key].default for key in V0_2}
+# the defaults of the 0.3.0 development line as the ``v0.3`` runs used them, spelled out so that the arm keeps its
+# meaning when a default changes; ``defaults`` is whatever POPLIN's signature says now
+V0_3: dict[str, Any] = dict(
+    whitening="function",
+    avg_update="overwrite",
+    distill_target="executed",
+    standardise_targets=True,
+    avg_step_size=0.1,
+    distill_window=10_000,
+)
+_SIGNATURE = inspect.signature(POPLIN.__init__).parameters
+DEFAULTS: dict[str, Any] = {key: _SIGNATURE[key].default for key in V0_2}
 ARMS: dict[str, dict[str, Any]] = {
     "v0.2": {},
     "v0.3": V0_3,
+    "defaults": DEFAULTS,
     "original": ORIGINAL,
     "whitening": dict(whitening="function"),
     "whitening-plain": dict(whitening="plain"),
@@ -80,7 +93,7 @@ ARMS.update({f"v0.3+{name}": {**V0_3, **ARMS[name]} for name in SINGLE_CHANGES})
 
 def uses_pets_hooks(task: str, arm: str) -> bool:
     """PETSCheetah runs with PETS's model hooks in the arms that say so (the others model it as 0.2.0 did)."""
-    return arm in ("v0.3", "original", "pets-hooks") or arm.startswith("v0.3+")
+    return arm in ("v0.3", "defaults", "original", "pets-hooks") or arm.startswith("v0.3+")
 
 
 def register_raw_cheetah() -> None:
@@ -251,7 +264,7 @@ def paired(reference: str) -> str:
                 seeds |= set(shared)
                 diffs = [ours[k] - theirs[k] for k in shared]
                 higher = f"{sum(d > 0 for d in diffs)} / {len(diffs)}" if diffs else "n/a"
-                row.append(f"| {higher} | {int(round(float(np.mean(diffs)))):+d} " if diffs else "| n/a | n/a ")
+                row.append(f"| {higher} | {round(float(np.mean(diffs))):+d} " if diffs else "| n/a | n/a ")
             lines.append(row[0] + f"| {len(seeds)} " + "".join(row[1:]) + "|")
     return "\n".join(lines)
 
