@@ -1,5 +1,9 @@
 """Shared test set-up: one torch thread (fastest on these 2-core machines), the tiny agent settings, a factory."""
 
+import importlib.util
+import sys
+from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import torch as th
@@ -17,3 +21,14 @@ TINY: dict[str, Any] = dict(
 def tiny(variant: str = "pets", env: Any = "Pendulum-v1", **kwargs: Any) -> POPLIN:
     """A seeded agent with the :data:`TINY` settings (``kwargs`` override them)."""
     return POPLIN(variant, env, seed=0, **{**TINY, **kwargs})
+
+
+def load_benchmark(name: str) -> ModuleType:
+    """Import ``benchmarks/<name>.py`` as module ``name`` (registered in ``sys.modules``: dataclasses look it up)."""
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module

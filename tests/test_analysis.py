@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 import torch as th
-from conftest import TINY
+from conftest import TINY, load_benchmark
 
 from sb3_poplin import POPLIN
 from sb3_poplin.analysis.__main__ import main
@@ -126,15 +126,7 @@ def test_control_curves_from_zoo_runs(tmp_path):
 
 
 def load_diagnose_mpc():
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parent.parent / "benchmarks" / "diagnose_mpc.py"
-    spec = importlib.util.spec_from_file_location("diagnose_mpc", path)
-    assert spec is not None and spec.loader is not None
-    diagnose = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(diagnose)
-    return diagnose
+    return load_benchmark("diagnose_mpc")
 
 
 @pytest.mark.parametrize("env_id", ["sb3_poplin/PETSCheetah-v0", "HalfCheetah-v5"])

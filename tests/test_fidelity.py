@@ -14,7 +14,7 @@ import pytest
 import torch as th
 import torch.nn.functional as F
 
-from conftest import tiny
+from conftest import load_benchmark, tiny
 from sb3_poplin import POPLIN
 from sb3_poplin.distillation import Distiller, average_perturbation, clip_straight_through, gan_distillation
 from sb3_poplin.dynamics import ProbabilisticEnsemble
@@ -319,14 +319,7 @@ def test_hooks_must_come_in_pairs_and_not_with_exclusions():
 
 # ---------------------------------------------------------------- the A/B's report
 def test_fidelity_ab_pairs_arms_seed_by_seed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import importlib.util
-    import sys
-
-    spec = importlib.util.spec_from_file_location("fidelity_ab", DATA.parent.parent / "benchmarks" / "fidelity_ab.py")
-    assert spec is not None and spec.loader is not None
-    ab = importlib.util.module_from_spec(spec)
-    sys.modules["fidelity_ab"] = ab
-    spec.loader.exec_module(ab)
+    ab = load_benchmark("fidelity_ab")
     monkeypatch.setattr(ab, "OUTPUT", tmp_path)
     # reference v0.3 on seeds 0-2; "original" on seeds 1-3: only seeds 1 and 2 are shared
     values = {

@@ -15,6 +15,7 @@ import optuna
 import pytest
 import yaml
 
+from conftest import load_benchmark
 from sb3_poplin import presets, zoo
 from sb3_poplin.tasks import env_util
 from sb3_poplin.envs import ENV_IDS
@@ -232,12 +233,7 @@ def test_compare_through_local_ray(tmp_path: Path) -> None:
 
 
 def load_compare():
-    spec = importlib.util.spec_from_file_location("compare", REPO / "benchmarks" / "compare.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["compare"] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("compare")
 
 
 def test_compare_runs_poplin_variants_by_name(tmp_path: Path) -> None:
