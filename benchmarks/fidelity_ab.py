@@ -18,7 +18,10 @@ Arms (POPLIN keyword arguments on top of the task's CPU settings from ``poplin_c
   ``avg-overwrite``, ``avg-add-1`` (the paper's equation, step 1), ``planned-target``, ``latest-window`` (BC/GAN on
   the latest episode only), ``raw-targets`` (model targets not standardised), ``pets-hooks`` (PETSCheetah only);
 - one change from ``v0.3`` each (the defaults plus one of the original's choices): ``v0.3+whitening-plain``,
-  ``v0.3+avg-add-1``, ``v0.3+planned-target``, ``v0.3+latest-window``, ``v0.3+raw-targets``.
+  ``v0.3+avg-add-1``, ``v0.3+planned-target``, ``v0.3+latest-window``, ``v0.3+raw-targets``;
+- leave one out (the original's settings with one of them back at its ``v0.3`` value):
+  ``original-without-whitening-plain``, ``original-without-planned-target``, ``original-without-latest-window``,
+  ``original-without-raw-targets``.
 
 Protocol per run: ``learn(steps)`` from seed k; the training episodes' returns; then MPC and policy control
 (POPLIN-A/P) on deterministic evaluation episodes of a fresh env seeded 1000 + k.
@@ -89,11 +92,29 @@ ARMS: dict[str, dict[str, Any]] = {
 # one change from the defaults each: ``v0.3+planned-target`` ... (the same changes as the single arms above)
 SINGLE_CHANGES = ("whitening-plain", "avg-add-1", "planned-target", "latest-window", "raw-targets")
 ARMS.update({f"v0.3+{name}": {**V0_3, **ARMS[name]} for name in SINGLE_CHANGES})
+# leave one out: the original's settings with one of them back at its ``v0.3`` value (``original-without-raw-targets``
+# standardises the model targets, and so on); the settings depend on the variant, as ``original``'s do
+LEFT_OUT = ("whitening-plain", "planned-target", "latest-window", "raw-targets")
+ARMS.update({f"original-without-{name}": {} for name in LEFT_OUT})
+
+
+def arm_settings(arm: str, policy: str) -> dict[str, Any]:
+    """
+    :param arm: an arm of :data:`ARMS`
+    :param policy: the variant the arm runs (``original`` and the leave-one-out arms depend on it)
+    :return: the POPLIN keyword arguments the arm sets on top of ``V0_2``
+    """
+    if arm == "original":
+        return original_code_settings(policy)
+    if arm.startswith("original-without-"):
+        name = arm.removeprefix("original-without-")
+        return {**original_code_settings(policy), **{key: V0_3[key] for key in ARMS[name]}}
+    return dict(ARMS[arm])
 
 
 def uses_pets_hooks(task: str, arm: str) -> bool:
     """PETSCheetah runs with PETS's model hooks in the arms that say so (the others model it as 0.2.0 did)."""
-    return arm in ("v0.3", "defaults", "original", "pets-hooks") or arm.startswith("v0.3+")
+    return arm in ("v0.3", "defaults", "original", "pets-hooks") or arm.startswith(("v0.3+", "original-without-"))
 
 
 def register_raw_cheetah() -> None:
@@ -147,8 +168,7 @@ def run_one(
         register_raw_cheetah()
         env_name = RAW_CHEETAH
     cpu = {k: v for k, v in poplin_settings(task).items() if k not in ("policy", "noise", "n_timesteps")}
-    arm_settings = original_code_settings(configuration(config)["policy"]) if arm == "original" else ARMS[arm]
-    settings = {**cpu, **configuration(config), **V0_2, **arm_settings}
+    settings = {**cpu, **configuration(config), **V0_2, **arm_settings(arm, configuration(config)["policy"])}
     model = POPLIN(env=make_env(env_name), seed=seed, **settings)
     start = time.time()
     model.learn(steps)

@@ -339,3 +339,18 @@ def test_fidelity_ab_pairs_arms_seed_by_seed(tmp_path: Path, monkeypatch: pytest
     # MPC: +5 (seed 1), -1 (seed 2) -> higher on 1 / 2, mean +2; policy: -1, +3 -> 1 / 2, mean +1
     assert table[2] == "| Pendulum-v1 | poplin-p/sep/bc | original | v0.3 | 2 | 1 / 2 | +2 | 1 / 2 | +1 |"
     assert ab.paired("whitening").splitlines()[2:] == []  # no run of the reference arm: no rows
+
+
+def test_fidelity_ab_leave_one_out_arms_change_exactly_one_original_setting() -> None:
+    ab = load_benchmark("fidelity_ab")
+    for policy in ("poplin-p", "poplin-a"):
+        original = ab.arm_settings("original", policy)
+        for name in ab.LEFT_OUT:
+            arm = ab.arm_settings(f"original-without-{name}", policy)
+            changed = {key for key in original if arm[key] != original[key]}
+            # POPLIN-A's original already clones the executed actions: leaving out the planned target changes nothing
+            expected = set() if (policy, name) == ("poplin-a", "planned-target") else set(ab.ARMS[name])
+            assert changed == expected, (policy, name, changed)
+            assert all(arm[key] == ab.V0_3[key] for key in ab.ARMS[name])
+    assert ab.arm_settings("original-without-raw-targets", "poplin-p")["standardise_targets"] is True
+    assert ab.uses_pets_hooks("sb3_poplin/PETSCheetah-v0", "original-without-latest-window")
