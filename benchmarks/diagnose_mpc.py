@@ -174,16 +174,17 @@ def main() -> None:
     mpc_time = (time.perf_counter() - start) / len(episode.actions)
     errors = model_error(model, episode, args.stride)
     true_return, true_time = true_model_episode(env, model, args.true_steps, args.seed)
+    ran_true = args.true_steps > 0
     mpc_return = float(episode.rewards[: args.true_steps].sum())
     ks = sorted({0, 4, model.horizon - 1} & set(range(model.horizon)))
     summary = {
         "mpc_return": float(episode.rewards.sum()),
-        "mpc_return_first_true_steps": mpc_return,
-        "true_model_return": true_return,
+        "mpc_return_first_true_steps": mpc_return if ran_true else None,
+        "true_model_return": true_return if ran_true else None,
         "state_rmse": {k + 1: errors["state_rmse"][k] for k in ks},
         "return_abs_error": {k + 1: errors["return_abs_error"][k] for k in ks},
         "real_return_abs": {k + 1: errors["real_return_abs"][k] for k in ks},
-        "seconds_per_step": {"learned": mpc_time, "true": true_time},
+        "seconds_per_step": {"learned": mpc_time, "true": true_time if ran_true else None},
     }
     print(json.dumps(summary, indent=2))
     if args.no_record:
@@ -205,8 +206,8 @@ def main() -> None:
         args.env,
         budget,
         f"{summary['mpc_return']:.1f} ({len(episode.actions)} steps)",
-        f"{mpc_return:.1f}",
-        f"{true_return:.1f}",
+        f"{mpc_return:.1f}" if ran_true else "not run",
+        f"{true_return:.1f}" if ran_true else "not run (--true-steps 0)",
         f"{errors['state_rmse'][0]:.3f} / {errors['state_rmse'][h - 1]:.3f}",
         f"{errors['return_abs_error'][h - 1]:.1f} / {errors['real_return_abs'][h - 1]:.1f}",
         command,
