@@ -13,20 +13,28 @@ def append_row(section: str, intro: str, header: list[str], row: list[str], path
     :param section: the section's heading text (without ``## ``)
     :param intro: paragraph written under a new section's heading
     :param header: column names of a new section's table
-    :param row: the cells of the row to add (kept below the section's existing rows)
+    :param row: the cells of the row to add, below the last row of the section's table (the one under ``header``;
+        text after the table stays after it), or at the section's end when the section has no such table
     :param path: the results file
     """
     lines = open(path).read().splitlines() if os.path.exists(path) else ["# Benchmark results", ""]
     line = "| " + " | ".join(row) + " |"
     heading = f"## {section}"
+    header_line = "| " + " | ".join(header) + " |"
     if heading not in lines:
-        lines += ["", heading, "", intro, "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header), line]
+        lines += ["", heading, "", intro, "", header_line, "|" + "---|" * len(header), line]
     else:
-        end = lines.index(heading) + 1
+        start = lines.index(heading) + 1
+        end = start
         while end < len(lines) and not lines[end].startswith("## "):
             end += 1
-        while lines[end - 1].strip() == "":
-            end -= 1
+        if header_line in lines[start:end]:
+            end = lines.index(header_line, start) + 1
+            while end < len(lines) and lines[end].startswith("|"):
+                end += 1
+        else:
+            while lines[end - 1].strip() == "":
+                end -= 1
         lines.insert(end, line)
     with open(path, "w") as file:
         file.write("\n".join(lines) + "\n")
