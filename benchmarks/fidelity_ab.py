@@ -18,7 +18,8 @@ Arms (POPLIN keyword arguments on top of the task's CPU settings from ``poplin_c
   ``avg-overwrite``, ``avg-add-1`` (the paper's equation, step 1), ``planned-target``, ``latest-window`` (BC/GAN on
   the latest episode only), ``raw-targets`` (model targets not standardised), ``pets-hooks`` (PETSCheetah only);
 - one change from ``v0.3`` each (the defaults plus one of the original's choices): ``v0.3+whitening-plain``,
-  ``v0.3+avg-add-1``, ``v0.3+planned-target``, ``v0.3+latest-window``, ``v0.3+raw-targets``;
+  ``v0.3+avg-add-1``, ``v0.3+planned-target``, ``v0.3+latest-window``, ``v0.3+raw-targets``; and
+  ``v0.3+planned-latest`` (both of the original's BC data choices: planned targets of the latest episode);
 - leave one out (the original's settings with one of them back at its ``v0.3`` value):
   ``original-without-whitening-plain``, ``original-without-planned-target``, ``original-without-latest-window``,
   ``original-without-raw-targets``.
@@ -92,6 +93,8 @@ ARMS: dict[str, dict[str, Any]] = {
 # one change from the defaults each: ``v0.3+planned-target`` ... (the same changes as the single arms above)
 SINGLE_CHANGES = ("whitening-plain", "avg-add-1", "planned-target", "latest-window", "raw-targets")
 ARMS.update({f"v0.3+{name}": {**V0_3, **ARMS[name]} for name in SINGLE_CHANGES})
+# the original's BC data together (its planned targets of the latest episode), with the defaults' whitening and model
+ARMS["v0.3+planned-latest"] = {**V0_3, **ARMS["planned-target"], **ARMS["latest-window"]}
 # leave one out: the original's settings with one of them back at its ``v0.3`` value (``original-without-raw-targets``
 # standardises the model targets, and so on); the settings depend on the variant, as ``original``'s do
 LEFT_OUT = ("whitening-plain", "planned-target", "latest-window", "raw-targets")

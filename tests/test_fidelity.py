@@ -354,3 +354,5 @@ def test_fidelity_ab_leave_one_out_arms_change_exactly_one_original_setting() ->
             assert all(arm[key] == ab.V0_3[key] for key in ab.ARMS[name])
     assert ab.arm_settings("original-without-raw-targets", "poplin-p")["standardise_targets"] is True
     assert ab.uses_pets_hooks("sb3_poplin/PETSCheetah-v0", "original-without-latest-window")
+    combined = ab.arm_settings("v0.3+planned-latest", "poplin-p")
+    assert combined == {**ab.V0_3, "distill_target": "planned", "distill_window": None}
