@@ -78,9 +78,10 @@ class POPLIN(OffPolicyAlgorithm):
         POPLIN-A ``"bc"``; POPLIN-P ``"avg"`` (default), ``"bc"`` or ``"gan"``; ``None`` for the default
     :param distill_imagined: also distill the final CEM elites' first steps ("imagined" data);
         ``None``: POPLIN-A yes (BC-AI), POPLIN-P no
-    :param distill_window: BC and GAN train on the most recent ``distill_window`` planned real steps (the
-        actions the planner executed, which stay valid targets as the policy changes); ``None``: only the steps
-        since the last distillation, as in the original code. Avg always uses the steps since the last update.
+    :param distill_window: BC and GAN train on the most recent ``distill_window`` planned real steps (recorded
+        when acting, so they stay valid targets as the policy changes); ``None``: only the steps since the last
+        distillation, as in the original code; ``"auto"``: the variant's default (POPLIN-A 10 000, POPLIN-P
+        ``None``: chosen by the fidelity A/B, see the README). Avg always uses the steps since the last update.
     :param avg_update: POPLIN-P Avg only: ``"overwrite"`` (``theta <- mean(omega)``, what the original code does:
         from the second update on the search runs around near-zero weights) or ``"add"`` (``theta <- theta +
         avg_step_size * mean(omega)``). Overwrite by the fidelity A/B on Pendulum (4 seeds; see the README): the
@@ -91,7 +92,8 @@ class POPLIN(OffPolicyAlgorithm):
     :param distill_target: BC's and GAN's target actions: ``"executed"`` (the executed actions, clipped to the
         bounds) or ``"planned"`` (the planner's first action before the clip; POPLIN-P: the network it planned
         with, perturbed by the executed perturbation: the original's BC-PR target). GAN's fake samples are clipped
-        like the targets
+        like the targets. ``None``: the variant's default, as the original code: POPLIN-A ``"executed"`` (BC-AI),
+        POPLIN-P ``"planned"`` (BC-PR; chosen by the fidelity A/B, see the README)
     :param whitening: what updating the policy's input whitening does to its first layer: ``"function"``
         (the first update only sets the statistics, so the normc network starts on whitened inputs; later updates
         re-express the layer so that the network's function is unchanged), ``"function_from_raw"`` (the first
@@ -117,7 +119,8 @@ class POPLIN(OffPolicyAlgorithm):
     :param model_learning_rate: Adam learning rate of the model
     :param holdout_ratio: fraction of the data held out for early stopping of the model fit
     :param standardise_targets: the dynamics model standardises its training targets per dimension (statistics
-        refit before every fit); ``False``: it predicts them in env units, as PETS's code did
+        refit before every fit, the learned log-variance bounds then act in standardised units); ``False`` (the
+        default since 0.3.0, chosen by the fidelity A/B): it predicts them in env units, as PETS's code did
     :param learned_reward: the ensemble also predicts the reward and the planner uses it;
         ``None``: only when no reward is known for the env
     :param reward_fn: ``(obs, action in env units, next_obs) -> [B]`` torch reward; overrides the task registry
@@ -178,10 +181,10 @@ class POPLIN(OffPolicyAlgorithm):
         noise: str = "sep",
         distillation: str | None = None,
         distill_imagined: bool | None = None,
-        distill_window: int | None = 10_000,
+        distill_window: int | str | None = "auto",
         avg_update: str = "overwrite",
         avg_step_size: float = 0.1,
-        distill_target: str = "executed",
+        distill_target: str | None = None,
         whitening: str = "function",
         policy_net_arch: Sequence[int] | None = None,
         policy_learning_rate: float = 3e-3,
@@ -197,7 +200,7 @@ class POPLIN(OffPolicyAlgorithm):
         model_batch_size: int = 32,
         model_learning_rate: float = 1e-3,
         holdout_ratio: float = 0.0,
-        standardise_targets: bool = True,
+        standardise_targets: bool = False,
         learned_reward: bool | None = None,
         reward_fn: RewardFn | None = None,
         termination_fn: TerminationFn | None = None,

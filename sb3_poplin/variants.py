@@ -48,6 +48,8 @@ class Variant:
     :param policy_net_arch: default hidden widths of the policy network; ``None``: the variant has none
     :param distillations: accepted distillations, the default first (none without a policy network)
     :param distill_imagined: default of ``distill_imagined`` (the final elites' first steps distilled too)
+    :param distill_target: default of ``distill_target`` (BC's and GAN's target actions)
+    :param distill_window: default of ``distill_window`` (``None``: the steps since the last distillation)
     """
 
     name: str
@@ -57,6 +59,8 @@ class Variant:
     policy_net_arch: tuple[int, ...] | None
     distillations: tuple[str, ...] = ()
     distill_imagined: bool = False
+    distill_target: str = "executed"
+    distill_window: int | None = 10_000
 
     @property
     def has_policy(self) -> bool:
@@ -85,7 +89,17 @@ VARIANTS: dict[str, Variant] = {
         Variant("pets", _actions, "cem", 0.25, None),
         Variant("rs", _actions, "rs", 0.25, None),
         Variant("poplin-a", _action_noise, "cem", 0.25, (64, 64), ("bc",), distill_imagined=True),  # BC-AI
-        Variant("poplin-p", _parameter_noise, "cem", 0.1, (32,), ("avg", "bc", "gan")),
+        # BC-PR / GAN on the planned outputs of the steps since the last distillation, as the original
+        Variant(
+            "poplin-p",
+            _parameter_noise,
+            "cem",
+            0.1,
+            (32,),
+            ("avg", "bc", "gan"),
+            distill_target="planned",
+            distill_window=None,
+        ),
     )
 }
 POLICY_VARIANTS = tuple(name for name, variant in VARIANTS.items() if variant.has_policy)
@@ -159,6 +173,15 @@ def resolve_settings(name: str, settings: dict[str, Any]) -> dict[str, Any]:
     s = dict(settings)
     for key in ("policy_net_arch", "dynamics_net_arch"):
         s[key] = None if s[key] is None else list(s[key])
+    if s["distill_target"] is None:
+        s["distill_target"] = spec.distill_target
+    if isinstance(s["distill_window"], str):
+        if s["distill_window"] != "auto":
+            raise ValueError(
+                f"distill_window must be an integer >= 1, None (the steps since the last distillation) or 'auto' "
+                f"(the variant's default), got {s['distill_window']!r}"
+            )
+        s["distill_window"] = spec.distill_window
     _check_ranges(s, spec)
     check_choice("propagation", s["propagation"], PROPAGATIONS)
     check_choice("whitening", s["whitening"], WHITENING_MODES)

@@ -22,7 +22,7 @@ from sb3_poplin.planning import PlanResult, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, POPLINPolicy, PolicyNetwork
 from sb3_poplin.saving import SETTINGS_BEFORE_0_3
 from sb3_poplin.tasks import TaskSpec, make_env, make_task, registered_tasks
-from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, original_code_settings
+from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, configuration, original_code_settings
 from sb3_poplin.tasks.paper import (
     pets_cheetah_obs_postproc,
     pets_cheetah_obs_preproc,
@@ -356,3 +356,25 @@ def test_fidelity_ab_leave_one_out_arms_change_exactly_one_original_setting() ->
     assert ab.uses_pets_hooks("sb3_poplin/PETSCheetah-v0", "original-without-latest-window")
     combined = ab.arm_settings("v0.3+planned-latest", "poplin-p")
     assert combined == {**ab.V0_3, "distill_target": "planned", "distill_window": None}
+
+
+@pytest.mark.parametrize(
+    ("config", "arm"),
+    [
+        ("poplin-p/sep/bc", "original-without-whitening-plain"),
+        ("poplin-p/uni/gan", "original-without-whitening-plain"),
+        ("poplin-p/sep/avg", "original-without-whitening-plain"),
+        ("poplin-a/init", "v0.3+raw-targets"),
+        ("pets", "v0.3+raw-targets"),
+    ],
+)
+def test_the_defaults_are_the_ab_arms_they_were_chosen_from(config: str, arm: str) -> None:
+    # the README's claim: POPLIN-P's defaults are the fidelity A/B's `original-without-whitening-plain` arm (the
+    # original's settings with the function-preserving whitening); the others' are the earlier defaults with raw
+    # model targets (POPLIN-A keeps its 10 000-step window of executed actions)
+    ab = load_benchmark("fidelity_ab")
+    kwargs = configuration(config)
+    policy = kwargs.pop("policy")
+    settings = {**ab.V0_2, **ab.arm_settings(arm, policy)}
+    by_default, explicit = tiny(policy, **kwargs), tiny(policy, **kwargs, **settings)
+    assert {key: getattr(by_default, key) for key in settings} == {key: getattr(explicit, key) for key in settings}

@@ -267,6 +267,8 @@ def test_variant_trains_plans_and_saves(tmp_path, name):
         (dict(policy="poplin-a", distillation="avg"), r"Unknown distillation 'avg'; accepted values: \['bc'\]"),
         (dict(policy="poplin-p", distillation="dagger"), r"accepted values: \['avg', 'bc', 'gan'\]"),
         (dict(policy="pets", distillation="bc"), "has no policy network to distill into"),
+        (dict(policy="poplin-p", distill_window="latest"), r"distill_window must be .* or 'auto' .*got 'latest'"),
+        (dict(policy="poplin-p", distill_window=0), r"distill_window must be an integer >= 1 \(or None\), got 0"),
         (dict(policy="pets", policy_net_arch=[8]), "leave policy_net_arch=None"),
         (dict(policy="poplin-a", proposal="closed"), r"Unknown proposal 'closed'; accepted values: \['init', 'replan'\]"),
         (dict(policy="poplin-p", noise="shared"), r"Unknown noise 'shared'; accepted values: \['sep', 'uni'\]"),
@@ -284,6 +286,21 @@ def test_variant_defaults_are_the_papers():
     assert (a.init_var, a.policy_net_arch, a.distillation, a.distill_imagined) == (0.25, [64, 64], "bc", True)
     assert (p.init_var, p.policy_net_arch, p.distillation, p.distill_imagined) == (0.1, [32], "avg", False)
     assert p.planner.search_space.dim == 5 * (3 * 32 + 32 + 32 + 1)
+
+
+def test_distillation_data_and_model_target_defaults_follow_the_fidelity_ab():
+    # POPLIN-P: BC-PR's planned targets of the steps since the last distillation; POPLIN-A: BC-AI's executed
+    # actions from a 10 000-step window; every variant's model predicts raw targets (the README's fidelity A/B)
+    a = POPLIN("poplin-a", "Pendulum-v1", **TINY)
+    p = POPLIN("poplin-p", "Pendulum-v1", distillation="bc", **TINY)
+    assert (a.distill_target, a.distill_window, p.distill_target, p.distill_window) == ("executed", 10_000, "planned", None)
+    assert p.distiller is not None and (p.distiller.target, p.distiller.window) == ("planned", None)
+    auto = POPLIN("poplin-a", "Pendulum-v1", distill_window="auto", distill_target=None, **TINY)
+    assert (auto.distill_target, auto.distill_window) == ("executed", 10_000)
+    explicit = POPLIN("poplin-p", "Pendulum-v1", distill_target="executed", distill_window=500, **TINY)
+    assert (explicit.distill_target, explicit.distill_window) == ("executed", 500)
+    for model in (a, p, POPLIN("pets", "Pendulum-v1", **TINY)):
+        assert model.standardise_targets is False and model.policy.dynamics.standardise_targets is False
 
 
 def test_training_collects_with_mpc_even_in_policy_control():
