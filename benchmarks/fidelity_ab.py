@@ -11,7 +11,8 @@ Arms (POPLIN keyword arguments on top of the task's CPU settings from ``poplin_c
   targets from a 10 000-step window, standardised model targets; on PETSCheetah no PETS model hooks);
 - ``v0.3``: the defaults of the 0.3.0 line when the A/B ran (whitening ``function``, Avg ``overwrite``, executed
   targets from the 10 000-step window, standardised model targets; PETS's hooks), spelled out;
-- ``defaults``: the settings above at ``POPLIN``'s current default values (PETS's hooks);
+- ``defaults``: the settings above at ``POPLIN``'s current default values (PETS's hooks): since round 5 of the A/B
+  the same settings as ``original-without-whitening-plain`` for POPLIN-P and ``v0.3+raw-targets`` for the others;
 - ``original``: the original code's (:func:`sb3_poplin.variants.original_code_settings`, PETS's hooks; POPLIN-A
   clones the executed actions, as the original's BC-AR/BC-AI);
 - one change from ``v0.2`` each: ``whitening`` (``function``: the first update starts whitened), ``whitening-plain``,
