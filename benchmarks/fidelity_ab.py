@@ -163,10 +163,14 @@ def run_one(
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv
 
+    from sb3_poplin import kernels
     from sb3_poplin.presets import poplin_settings
     from sb3_poplin.tasks import make_env
 
     th.set_num_threads(1)
+    # The fused forward at every size, as before kernels.FUSED_MIN_ROWS existed: the A/B's runs replay its earlier
+    # rounds' numbers, so arms run in different sessions stay paired seed by seed.
+    kernels.FUSED_MIN_ROWS = 0
     env_name = task
     if task == "sb3_poplin/PETSCheetah-v0" and not uses_pets_hooks(task, arm):
         register_raw_cheetah()

@@ -3,11 +3,15 @@ Plan time of POPLIN-A and POPLIN-P against PETS at the same population, horizon 
 measured in one process (median of ``--repeats`` ``predict`` calls after warm-up). Appends one row
 per setting to benchmarks/RESULTS.md with the ratios to PETS.
 
-    python benchmarks/plan_time_variants.py [--setting paper|cpu] [--repeats 5] [--threads 1]
+    python benchmarks/plan_time_variants.py [--setting paper|cpu|cheetah-cpu] [--repeats 5] [--threads 1]
+        [--fused-min-rows N]
 
 ``paper``: HalfCheetah-v5 sizes (17-dim obs, 6-dim action), population 500, horizon 30, 5 CEM
 iterations, 5 x (200, 200, 200, 200) ensemble, expectation propagation, policies [64, 64] (A) and
-[32] (P, W = 774 parameters). ``cpu``: Pendulum-v1 with the demo's CPU settings.
+[32] (P, W = 774 parameters). ``cpu``: Pendulum-v1 with the demo's CPU settings. ``cheetah-cpu``:
+``sb3_poplin/PETSCheetah-v0``'s ``poplin_cpu.yml`` entry (population 200, horizon 15, 3 iterations,
+5 x 3 x 128), the planner of the fidelity A/B and of issue 18's comparison. ``--fused-min-rows`` sets
+``sb3_poplin.kernels.FUSED_MIN_ROWS`` (0: the fused oneDNN forward at every size, as before it existed).
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ import warnings
 
 import torch as th
 
-from sb3_poplin import POPLIN
+from sb3_poplin import POPLIN, kernels
 from sb3_poplin.presets import poplin_settings
 from sb3_poplin.variants import configuration
 
@@ -31,6 +35,7 @@ from results_file import append_row, describe_machine
 SETTINGS = {  # the packaged files' planner settings (poplin.yml / poplin_cpu.yml)
     "paper": ("HalfCheetah-v5", poplin_settings("HalfCheetah-v5", "paper", learned_reward=True, buffer_size=1000)),
     "cpu": ("Pendulum-v1", poplin_settings("Pendulum-v1")),
+    "cheetah-cpu": ("sb3_poplin/PETSCheetah-v0", poplin_settings("sb3_poplin/PETSCheetah-v0")),
 }
 # the distillation does not change the plan: one configuration per search space
 VARIANTS = {name: configuration(name) for name in ("pets", "poplin-a/init", "poplin-a/replan")}
@@ -50,8 +55,11 @@ def main() -> None:
     parser.add_argument("--setting", choices=list(SETTINGS), default="paper")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--fused-min-rows", type=int, default=None, help="sb3_poplin.kernels.FUSED_MIN_ROWS for this run")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
+    if args.fused_min_rows is not None:
+        kernels.FUSED_MIN_ROWS = args.fused_min_rows
     env_id, settings = SETTINGS[args.setting]
     results = {name: plan_time(env_id, settings, variant, args.repeats) for name, variant in VARIANTS.items()}
     pets = results["pets"]

@@ -17,6 +17,10 @@ Parts, at the paper setting's sizes:
    single-threaded share of the members x rows per thread.
 4. CEM elite statistics of one POPLIN-P Sep iteration (50 elites x 23,220 dims): element-wise weighting and
    reductions over the elites (the planner until 2026-12-01), against the planner's [1, K] x [K, D] products.
+5. The expectation forward at the CPU budget's sizes (5 members of 3 x 64, 3 x 128 and 4 x 200, 100-1000 rows): the
+   fused per-member oneDNN layers against the batched matmuls, the ratio behind ``kernels.FUSED_MIN_ROWS``.
+
+    python benchmarks/planner_parts.py --threads 1 --parts 5
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from collections.abc import Callable
 
 import torch as th
 
+from sb3_poplin import kernels
 from sb3_poplin.dynamics import ProbabilisticEnsemble
 from sb3_poplin.kernels import ParameterCache, onednn_fused_linear
 from sb3_poplin.sampling import CandidateSampler, Workspace, run_shares, split_range, truncated_normal
@@ -160,6 +165,41 @@ def forward_part(rounds: int, threads: int, rows: int = 500) -> str:
     return summary(samples, "oneDNN threads") + f"; {rates}"
 
 
+def small_forward_part(rounds: int) -> str:
+    """Part 5: per (members' hidden sizes, rows) the batched matmuls' time as a multiple of the fused forward's."""
+    linear = onednn_fused_linear(th.float32)
+    if linear is None:
+        return "oneDNN's fused linear is not available in this torch build"
+    results = []
+    for hidden in ((64,) * 3, (128,) * 3, (200,) * 4):
+        th.manual_seed(0)
+        model = ProbabilisticEnsemble(18, 6, 5, hidden)
+        cells = []
+        for rows in (100, 200, 300, 400, 600, 1000):
+            x = th.randn(rows, model.in_dim)
+            with th.inference_mode():
+                alternatives = {
+                    "fused": functools.partial(kernels.member_layers, model, x, mean_only=True),
+                    "batched": functools.partial(batched_mean, model, x),
+                }
+                assert th.allclose(alternatives["fused"](), alternatives["batched"](), atol=1e-5)
+                samples = interleave(alternatives, rounds, max(2, 4000 // rows))
+            ratio = statistics.median(b / a for a, b in zip(samples["fused"], samples["batched"], strict=True))
+            cells.append(f"{rows} rows {statistics.median(samples['fused']) * 1e3:.2f} ms / {ratio:.2f}x")
+        results.append(f"{len(hidden)} x {hidden[0]}: " + ", ".join(cells))
+    return "fused forward time / batched as a multiple of it: " + "; ".join(results)
+
+
+def batched_mean(model: ProbabilisticEnsemble, x: th.Tensor) -> th.Tensor:
+    """The shared-input mean through the batched matmuls whatever the size (``kernels.shared_input_mean``'s other path)."""
+    saved = kernels.FUSED_MIN_ROWS
+    kernels.FUSED_MIN_ROWS = x.shape[0] + 1
+    try:
+        return kernels.shared_input_mean(model, x)
+    finally:
+        kernels.FUSED_MIN_ROWS = saved
+
+
 def elite_part(rounds: int) -> str:
     dim, k = 30 * 774, 50
     generator = th.Generator().manual_seed(0)
@@ -190,17 +230,23 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=15)
+    parser.add_argument("--parts", type=int, nargs="+", choices=range(1, 6), default=list(range(1, 6)))
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     command = "python " + " ".join(sys.argv)
     machine = describe_machine(args.threads)
-    parts = [
-        ("CEM sampling, one POPLIN-P Sep iteration (11.6 M samples)", sampling_part(args.rounds)),
-        ("one 500 x 200 x 200 layer, oneDNN linear", layer_part(args.rounds)),
-        ("one expectation forward, 5 x 4 x 200 on 500 rows", forward_part(args.rounds, args.threads)),
-        ("one expectation forward, 5 x 4 x 200 on 1000 rows (two envs)", forward_part(args.rounds, args.threads, 1000)),
-        ("CEM elite statistics, one POPLIN-P Sep iteration (50 x 23,220)", elite_part(args.rounds)),
-    ]
+    rounds, threads = args.rounds, args.threads
+    all_parts: dict[int, list[tuple[str, Callable[[], str]]]] = {
+        1: [("CEM sampling, one POPLIN-P Sep iteration (11.6 M samples)", lambda: sampling_part(rounds))],
+        2: [("one 500 x 200 x 200 layer, oneDNN linear", lambda: layer_part(rounds))],
+        3: [
+            ("one expectation forward, 5 x 4 x 200 on 500 rows", lambda: forward_part(rounds, threads)),
+            ("one expectation forward, 5 x 4 x 200 on 1000 rows (two envs)", lambda: forward_part(rounds, threads, 1000)),
+        ],
+        4: [("CEM elite statistics, one POPLIN-P Sep iteration (50 x 23,220)", lambda: elite_part(rounds))],
+        5: [("one expectation forward at CPU-budget sizes, fused vs batched", lambda: small_forward_part(rounds))],
+    }
+    parts = [(name, run()) for number in sorted(set(args.parts)) for name, run in all_parts[number]]
     peak_note = f"(sgemm 2048^3 right after: {2 * 2048**3 / min(timed_matmul() for _ in range(5)) / 1e9:.0f} GFLOP/s)"
     for part, result in parts:
         print(f"{part}: {result}")

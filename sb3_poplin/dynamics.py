@@ -155,7 +155,7 @@ class ProbabilisticEnsemble(nn.Module):
     :param obs_postproc: ``(obs, prediction [..., t]) -> next_obs``; ``None``: :func:`add_delta`. Given with
         ``targ_proc`` (each is the other's inverse)
     :param standardise_targets: standardise the training targets per dimension (statistics refit before every
-        fit); ``False``: the network predicts them in env units (PETS)
+        fit); ``False`` (the default, as ``POPLIN``'s): the network predicts them in env units (PETS)
     """
 
     obs_index: th.Tensor
@@ -176,7 +176,7 @@ class ProbabilisticEnsemble(nn.Module):
         obs_preproc: ObsPreproc | None = None,
         targ_proc: TargProc | None = None,
         obs_postproc: ObsPostproc | None = None,
-        standardise_targets: bool = True,
+        standardise_targets: bool = False,
     ) -> None:
         super().__init__()
         if ensemble_size < 1:

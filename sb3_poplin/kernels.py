@@ -3,9 +3,12 @@ The speed layer of the ensemble's no-gradient forwards (planning and evaluation)
 :meth:`sb3_poplin.dynamics.ProbabilisticEnsemble.forward`, computed faster.
 
 - On a CPU with oneDNN, each member's layers run as oneDNN linear primitives with the bias and SiLU fused into the
-  matmul (:func:`onednn_fused_linear`, probed once per process and dtype against the plain computation).
-- Elsewhere the shared-input forward of expectation propagation is one broadcast matmul for the first layer (no copy
-  of the input per member) and plain batched matmuls after it, with the bias added and SiLU applied in place.
+  matmul (:func:`onednn_fused_linear`, probed once per process and dtype against the plain computation), from
+  :data:`FUSED_MIN_ROWS` rows per member on: each such call has a fixed cost of tens of microseconds, which the
+  fusion repays on the paper's 500-row planner but not on the CPU budget's 200 rows.
+- Elsewhere (and below that size) the shared-input forward of expectation propagation is one broadcast matmul for
+  the first layer (no copy of the input per member) and plain batched matmuls after it, with the bias added and SiLU
+  applied in place.
 - Under a bf16 autocast the whole forward runs in bf16 on bf16 copies of the parameters, made once per parameter
   update (:class:`ParameterCache`; autocast would cast every weight at every call and mix dtypes in the element-wise
   ops).
@@ -27,6 +30,14 @@ if TYPE_CHECKING:
     from sb3_poplin.dynamics import ProbabilisticEnsemble
 
 Layers = list[tuple[th.Tensor, th.Tensor]]
+
+# Rows per member from which the fused per-member oneDNN forward runs; fewer go through the batched matmuls. Measured
+# on the AMD EPYC (1 thread, ``benchmarks/planner_parts.py --parts 5``): with 100-300 rows the batched matmuls took
+# 0.24-0.86x the fused forward's time for members of 3 x 64, 3 x 128 and 4 x 200 (the CPU budget plans 200 rows); from
+# 400 rows on the wider members were as fast or faster fused (4 x 200: 1.11x at 600 rows, 1.62x at 1000). A whole
+# CPU-budget plan became 1.6-2.5x faster (``plan_time_variants.py --setting cpu|cheetah-cpu``). The two paths agree to
+# float32 rounding, not bit for bit: 0 replays runs made before the threshold existed (``benchmarks/fidelity_ab.py``).
+FUSED_MIN_ROWS = 320
 
 
 @functools.cache
@@ -61,8 +72,11 @@ def compute_dtype(x: th.Tensor) -> th.dtype:
 
 
 def fused_dtype(x: th.Tensor) -> th.dtype | None:
-    """The dtype the fused oneDNN forward runs ``x`` in (no gradients, CPU, oneDNN has it), else ``None``."""
-    if th.is_grad_enabled() or x.device.type != "cpu":
+    """
+    The dtype the fused oneDNN forward runs ``x`` (``[B, in]`` or ``[E, B, in]``) in, else ``None``: where gradients
+    are on, off a CPU, without oneDNN, or for fewer than :data:`FUSED_MIN_ROWS` rows ``B``.
+    """
+    if th.is_grad_enabled() or x.device.type != "cpu" or x.shape[-2] < FUSED_MIN_ROWS:
         return None
     dtype = compute_dtype(x)
     if dtype not in (th.float32, th.bfloat16):

@@ -223,7 +223,8 @@ class POPLINPolicy(BasePolicy):
     :param obs_preproc: the task's model-input hook (see :mod:`sb3_poplin.dynamics`); ``None``: the default
     :param targ_proc: the task's model-target hook; ``None``: the delta
     :param obs_postproc: the inverse of ``targ_proc``; ``None``: ``obs + prediction``
-    :param standardise_targets: the dynamics model standardises its targets
+    :param standardise_targets: the dynamics model standardises its targets (default ``False``, as ``POPLIN``'s
+        since the fidelity A/B of issue 19: raw targets, as PETS's code)
     """
 
     def __init__(
@@ -243,7 +244,7 @@ class POPLINPolicy(BasePolicy):
         obs_preproc: ObsPreproc | None = None,
         targ_proc: TargProc | None = None,
         obs_postproc: ObsPostproc | None = None,
-        standardise_targets: bool = True,
+        standardise_targets: bool = False,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=True)
         assert isinstance(observation_space, spaces.Box) and isinstance(action_space, spaces.Box)

@@ -64,7 +64,8 @@ FUSED = pytest.mark.skipif(
 
 
 def plain_and_fused(monkeypatch, model, compute):
-    """``compute()`` with the oneDNN fused forward, then with it switched off (the plain batched matmuls)."""
+    """``compute()`` with the oneDNN fused forward (at any batch size), then with it switched off (batched matmuls)."""
+    monkeypatch.setattr(kernels, "FUSED_MIN_ROWS", 0)
     fused = compute()
     monkeypatch.setattr(kernels, "onednn_fused_linear", lambda dtype: None)
     plain = compute()
@@ -85,11 +86,12 @@ def test_fused_forward_equals_the_plain_forward(monkeypatch, learned_reward: boo
         fused, plain = plain_and_fused(monkeypatch, model, lambda: model.shared_input_mean(shared))
         assert fused.shape == plain.shape == (3, 11, model.out_dim)
         assert th.allclose(fused, plain, atol=1e-5) and plain.std() > 0.1
-        fused, plain = plain_and_fused(monkeypatch, model, lambda: th.cat(model(per_member), dim=-1))
+        fused, plain = plain_and_fused(monkeypatch, model, lambda: th.cat(model.predict(per_member), dim=-1))
         assert fused.shape == plain.shape == (3, 11, 2 * model.out_dim)
         assert th.allclose(fused, plain, atol=1e-5)
+        assert th.allclose(plain, th.cat(model(per_member), dim=-1))  # the plain path is the training forward
         with th.autocast("cpu", dtype=th.bfloat16):
-            fused, plain = plain_and_fused(monkeypatch, model, lambda: th.cat(model(per_member), dim=-1))
+            fused, plain = plain_and_fused(monkeypatch, model, lambda: th.cat(model.predict(per_member), dim=-1))
         assert fused.dtype == th.float32
         assert th.allclose(fused, plain.float(), atol=0.05, rtol=0.05)
     # with gradients: always the plain forward, which trains
@@ -98,7 +100,8 @@ def test_fused_forward_equals_the_plain_forward(monkeypatch, learned_reward: boo
 
 
 @FUSED
-def test_fused_forward_follows_parameter_updates():
+def test_fused_forward_follows_parameter_updates(monkeypatch):
+    monkeypatch.setattr(kernels, "FUSED_MIN_ROWS", 0)
     th.manual_seed(0)
     model = ProbabilisticEnsemble(3, 2, ensemble_size=2, hidden_sizes=(8,))
     x = th.randn(4, model.in_dim)
@@ -109,6 +112,32 @@ def test_fused_forward_follows_parameter_updates():
     with th.inference_mode():
         second = model.shared_input_mean(x)
     assert th.allclose(second - first, th.ones_like(first), atol=1e-5)  # standardised units: +1 on every output
+
+
+@FUSED
+def test_the_fused_forward_runs_from_fused_min_rows_on(monkeypatch):
+    """Few rows per member go through the batched matmuls, many through the per-member oneDNN layers."""
+    calls = []
+    linear = kernels.onednn_fused_linear(th.float32)
+
+    def counting(*args):
+        calls.append(args[0].shape[0])
+        return linear(*args)
+
+    monkeypatch.setattr(kernels, "onednn_fused_linear", lambda dtype: counting)
+    th.manual_seed(0)
+    model = ProbabilisticEnsemble(3, 2, ensemble_size=2, hidden_sizes=(8, 8))
+    few, many = kernels.FUSED_MIN_ROWS - 1, kernels.FUSED_MIN_ROWS
+    with th.inference_mode():
+        model.shared_input_mean(th.randn(few, model.in_dim))
+        model.predict(th.randn(2, few, model.in_dim))
+        assert calls == []
+        model.shared_input_mean(th.randn(many, model.in_dim))
+        assert calls == [many] * 6  # 2 members x 3 layers
+        model.predict(th.randn(2, many, model.in_dim))
+        assert calls == [many] * 12
+    model.predict(th.randn(2, many, model.in_dim))  # gradients on: the training forward
+    assert len(calls) == 12
 
 
 def test_default_weight_decays_match_the_paper():
@@ -200,18 +229,27 @@ def test_fitted_ensemble_predicts_held_out_pendulum_transitions():
     assert (err / delta_var < 5e-3).all(), (err / delta_var).tolist()
 
 
-def test_learned_reward_head():
+@pytest.mark.parametrize("standardise_targets", [False, True])
+def test_learned_reward_head(standardise_targets: bool):
+    """
+    The reward head explains > 95 % of Pendulum's reward variance after 60 epochs, with raw targets (the default) and
+    standardised ones. Raw targets fit it more slowly: 8.3 % of the variance left after 20 epochs against 0.7 %
+    standardised, 1.8 % against 0.5 % after 60 (measured 2026-12-02; the fidelity A/B chose raw targets on tasks with
+    a known reward and never measured a learned one).
+    """
     th.manual_seed(0)
     obs, act, nxt, rew = pendulum_transitions(2000, seed=2)
-    model = ProbabilisticEnsemble(3, 1, ensemble_size=3, hidden_sizes=(64, 64), learned_reward=True)
+    model = ProbabilisticEnsemble(
+        3, 1, ensemble_size=3, hidden_sizes=(64, 64), learned_reward=True, standardise_targets=standardise_targets
+    )
     optimizer = th.optim.Adam(model.parameters(), lr=1e-3)
     with pytest.raises(ValueError, match="pass rewards="):
         model.fit(obs, act, nxt, optimizer)
-    model.fit(obs, act, nxt, optimizer, rewards=rew, epochs=20, generator=th.Generator().manual_seed(0))
+    model.fit(obs, act, nxt, optimizer, rewards=rew, epochs=60, generator=th.Generator().manual_seed(0))
     with th.no_grad():
         _, pred = model.propagate(obs[:500].unsqueeze(1), act[:500].unsqueeze(1), "expectation")
     assert pred is not None
-    assert ((pred.squeeze(1) - rew[:500]) ** 2).mean() / rew[:500].var() < 0.02
+    assert ((pred.squeeze(1) - rew[:500]) ** 2).mean() / rew[:500].var() < 0.05
 
 
 def test_holdout_early_stopping_restores_the_best_parameters():
