@@ -229,13 +229,12 @@ def test_fitted_ensemble_predicts_held_out_pendulum_transitions():
     assert (err / delta_var < 5e-3).all(), (err / delta_var).tolist()
 
 
-@pytest.mark.parametrize("standardise_targets", [False, True])
-def test_learned_reward_head(standardise_targets: bool):
+@pytest.mark.parametrize("standardise_targets, epochs, bound", [(True, 20, 0.02), (False, 60, 0.05)])
+def test_learned_reward_head(standardise_targets: bool, epochs: int, bound: float):
     """
-    The reward head explains > 95 % of Pendulum's reward variance after 60 epochs, with raw targets (the default) and
-    standardised ones. Raw targets fit it more slowly: 8.3 % of the variance left after 20 epochs against 0.7 %
-    standardised, 1.8 % against 0.5 % after 60 (measured 2026-12-02; the fidelity A/B chose raw targets on tasks with
-    a known reward and never measured a learned one).
+    The reward head learns Pendulum's reward. With raw targets (the default since 0.3.0) it fits more slowly than
+    with standardised ones: 8.3 % of the reward variance left after 20 epochs against 0.7 %, 1.8 % against 0.5 % after
+    60 (measured 2026-12-02; the fidelity A/B chose raw targets on tasks with a known reward, never a learned one).
     """
     th.manual_seed(0)
     obs, act, nxt, rew = pendulum_transitions(2000, seed=2)
@@ -245,11 +244,11 @@ def test_learned_reward_head(standardise_targets: bool):
     optimizer = th.optim.Adam(model.parameters(), lr=1e-3)
     with pytest.raises(ValueError, match="pass rewards="):
         model.fit(obs, act, nxt, optimizer)
-    model.fit(obs, act, nxt, optimizer, rewards=rew, epochs=60, generator=th.Generator().manual_seed(0))
+    model.fit(obs, act, nxt, optimizer, rewards=rew, epochs=epochs, generator=th.Generator().manual_seed(0))
     with th.no_grad():
         _, pred = model.propagate(obs[:500].unsqueeze(1), act[:500].unsqueeze(1), "expectation")
     assert pred is not None
-    assert ((pred.squeeze(1) - rew[:500]) ** 2).mean() / rew[:500].var() < 0.05
+    assert ((pred.squeeze(1) - rew[:500]) ** 2).mean() / rew[:500].var() < bound
 
 
 def test_holdout_early_stopping_restores_the_best_parameters():
