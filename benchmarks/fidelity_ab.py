@@ -42,6 +42,7 @@ import json
 import multiprocessing
 import os
 import subprocess
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -51,6 +52,9 @@ import numpy as np
 
 from sb3_poplin import POPLIN
 from sb3_poplin.saving import SETTINGS_BEFORE_0_3
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from results_file import describe_machine
 from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, configuration, original_code_settings
 
 HERE = Path(__file__).resolve().parent
@@ -209,6 +213,7 @@ def run_one(
         eval_time_s=round(time.time() - start, 1),
         date=str(datetime.date.today()),
         commit=commit,
+        machine=describe_machine(1),
     )
     saved = model_path(task, config, arm, seed)
     saved.parent.mkdir(parents=True, exist_ok=True)
