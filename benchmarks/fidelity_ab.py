@@ -52,10 +52,10 @@ import numpy as np
 
 from sb3_poplin import POPLIN
 from sb3_poplin.saving import SETTINGS_BEFORE_0_3
+from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, configuration, original_code_settings
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from results_file import describe_machine
-from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, configuration, original_code_settings
 
 HERE = Path(__file__).resolve().parent
 OUTPUT = HERE / "fidelity_ab"
