@@ -295,14 +295,17 @@ def test_compare_reports_the_paper_protocol_and_steps_to_reach(tmp_path: Path) -
     options = compare_module.parse_args([*common, "--steps-scale", "sac:3", "--log-folder", str(tmp_path)])
     jobs = compare_module.plan_jobs(options)
     assert {(job.algo, job.n_timesteps, job.eval_freq) for job in jobs} == {("pets", 3000, 1000), ("sac", 9000, 1000)}
-    # the warm-up rule looks at the algorithm's own budget: the zoo's 10000 warm-up steps on HalfCheetah are kept at
-    # 3 x 10000 steps and cut to a tenth at 10000
-    cheetah = ["--algos", "sac", "td3", "--envs", "HalfCheetah-v5", "--seeds", "0", "-n", "10000"]
-    cheetah_jobs = compare_module.plan_jobs(compare_module.parse_args([*cheetah, "--steps-scale", "sac:3"]))
+    # the warm-up rule looks at the matched budget: the zoo's 10000 warm-up steps on HalfCheetah are cut to a tenth of
+    # 10000 for the matched run and for the one trained 3 x as long alike (its first 10000 steps are the matched run's);
+    # a matched budget of more than 20000 keeps them
+    cheetah = ["--algos", "sac", "td3", "--envs", "HalfCheetah-v5", "--seeds", "0"]
+    cheetah_jobs = compare_module.plan_jobs(compare_module.parse_args([*cheetah, "-n", "10000", "--steps-scale", "sac:3"]))
     assert {job.algo: (job.n_timesteps, job.params) for job in cheetah_jobs} == {
-        "sac": (30000, []),
+        "sac": (30000, ["learning_starts:1000"]),
         "td3": (10000, ["learning_starts:1000"]),
     }
+    long_jobs = compare_module.plan_jobs(compare_module.parse_args([*cheetah, "-n", "30000", "--steps-scale", "sac:3"]))
+    assert {job.algo: (job.n_timesteps, job.params) for job in long_jobs} == {"sac": (90000, []), "td3": (30000, [])}
     evaluations = {
         ("pets", 0): [-100, -50, 10],
         ("pets", 1): [-90, -30, 30],  # final mean 20
