@@ -840,7 +840,7 @@ def algo_settings(
     overridden = any(setting.startswith("learning_starts:") for setting in params)
     if not is_poplin and learning_starts >= n_timesteps / 2 and not overridden:
         if options.keep_learning_starts:
-            print(f"warning: {algo} on {env} learns only after {learning_starts} of its {n_timesteps} steps")
+            print(f"warning: {algo} on {env} learns only after {learning_starts} of the {n_timesteps} matched steps")
         else:
             params = [*params, f"learning_starts:{n_timesteps // 10}"]
             print(
