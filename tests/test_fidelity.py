@@ -276,8 +276,14 @@ def test_pets_cheetah_model_sees_sin_cos_of_the_angle_and_not_the_velocity():
 def test_predictions_through_the_hooks_equal_a_hand_computation():
     th.manual_seed(0)
     model = ProbabilisticEnsemble(
-        18, 6, ensemble_size=1, hidden_sizes=(8,), obs_preproc=pets_cheetah_obs_preproc,
-        targ_proc=pets_cheetah_targ_proc, obs_postproc=pets_cheetah_obs_postproc, standardise_targets=True,
+        18,
+        6,
+        ensemble_size=1,
+        hidden_sizes=(8,),
+        obs_preproc=pets_cheetah_obs_preproc,
+        targ_proc=pets_cheetah_targ_proc,
+        obs_postproc=pets_cheetah_obs_postproc,
+        standardise_targets=True,
     )  # fmt: skip  (standardised: the hand computation covers the target scaler too; raw targets: the test below)
     obs, actions, nxt = th.randn(64, 18), th.rand(64, 6) * 2 - 1, th.randn(64, 18)
     model.fit(obs, actions, nxt, th.optim.Adam(model.parameters()), epochs=1, generator=th.Generator().manual_seed(0))
