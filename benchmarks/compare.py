@@ -126,6 +126,20 @@ def parse_value(text: str) -> Any:
     return eval(text)  # the zoo evaluates the same string
 
 
+def conf_identity(path: str | None) -> str | None:
+    """
+    :param path: a hyperparameter file as a run's ``args.yml`` records it (absolute, so it names the checkout)
+    :return: what identifies the file across checkouts and machines: a packaged file (``sb3_poplin/hyperparams/X``)
+        by that tail, any other file by its resolved path
+    """
+    if path is None:
+        return None
+    parts = Path(path).parts
+    if len(parts) >= 3 and parts[-3:-1] == ("sb3_poplin", "hyperparams"):
+        return "/".join(parts[-3:])
+    return str(Path(path).resolve())
+
+
 @dataclass
 class Job:
     """
@@ -200,7 +214,7 @@ class Job:
             and args.get("n_timesteps") == self.n_timesteps
             and args.get("eval_freq") == self.eval_freq
             and args.get("eval_episodes") == self.eval_episodes
-            and args.get("conf_file") == self.conf_file
+            and conf_identity(args.get("conf_file")) == conf_identity(self.conf_file)
             and (args.get("hyperparams") or {}) == expected
         )
 

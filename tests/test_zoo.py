@@ -267,6 +267,12 @@ def test_compare_runs_poplin_variants_by_name(tmp_path: Path) -> None:
     args = {"algo": "poplin", "env": "Pendulum-v1", "seed": 0, "n_timesteps": 400, "eval_freq": 40, "eval_episodes": 3}
     args |= {"conf_file": jobs["pets"].conf_file, "hyperparams": {"policy": "pets", "horizon": 5}}
     assert jobs["pets"].matches(args) and not jobs["poplin-a"].matches(args)
+    # a run committed from another checkout (its args.yml names that checkout's packaged file) is the same run
+    moved = str(
+        Path("/elsewhere/checkout") / Path(jobs["pets"].conf_file).relative_to(Path(jobs["pets"].conf_file).parents[2])
+    )
+    assert jobs["pets"].matches(args | {"conf_file": moved})
+    assert not jobs["pets"].matches(args | {"conf_file": "/elsewhere/checkout/sb3_poplin/hyperparams/other.yml"})
 
 
 def write_fake_run(job, run_dir: Path, eval_returns: list[float], train_returns: list[float], episode: int) -> None:
