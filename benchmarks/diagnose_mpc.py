@@ -52,12 +52,14 @@ class TrueModelPlanner:
 
     :param env: the (unwrapped-accessible) MuJoCo env
     :param model: the trained agent (its CEM settings and task reward are used)
+    :param budget: ``(horizon, population, elites, iterations)`` to plan with instead of the agent's (its
+        momentum, bounds and task are kept): what a perfect model reaches at another planner budget
     """
 
     # the envs whose observations this planner rebuilds from MuJoCo states (and that never terminate)
     SUPPORTED = (HalfCheetahEnv, PETSCheetahEnv)
 
-    def __init__(self, env: gym.Env, model: POPLIN) -> None:
+    def __init__(self, env: gym.Env, model: POPLIN, budget: tuple[int, int, int, int] | None = None) -> None:
         self.env = env.unwrapped
         nq, nv = self.env.model.nq, self.env.model.nv
         if type(self.env) not in self.SUPPORTED or env.observation_space.shape != (nq + nv,):
@@ -68,8 +70,12 @@ class TrueModelPlanner:
                 f"Pass --true-steps 0 to skip the true-simulator planning."
             )
         self.task = make_task(model.task_id)
-        self.horizon = model.horizon
-        self.cem = CEM(model.population_size, model.num_elites, model.cem_iterations, model.cem_alpha)
+        if budget is None:
+            budget = (model.horizon, model.population_size, model.num_elites, model.cem_iterations)
+        if len(budget) != 4 or min(budget) < 1:
+            raise ValueError(f"budget must be four positive integers (horizon, population, elites, iterations), got {budget}")
+        self.horizon, population, elites, iterations = (int(b) for b in budget)
+        self.cem = CEM(population, elites, iterations, model.cem_alpha)
         self.to_env_units = model.planner.to_env_units  # scaled actions -> env units, from the agent's bounds
         self.action_dim = int(model.action_space.shape[0])
         # PETS's search space: its initial variance, its bound-aware variance cap and its shift
@@ -131,11 +137,16 @@ class TrueModelPlanner:
         return self.to_env_units(first)[0].double().numpy()
 
 
-def true_model_episode(env: gym.Env, model: POPLIN, steps: int, seed: int) -> tuple[float, float]:
-    """:return: the return of ``steps`` steps planned with the true simulator, and seconds per step (0, nan: none)"""
+def true_model_episode(
+    env: gym.Env, model: POPLIN, steps: int, seed: int, budget: tuple[int, int, int, int] | None = None
+) -> tuple[float, float]:
+    """
+    :param budget: ``(horizon, population, elites, iterations)``; None: the agent's
+    :return: the return of ``steps`` steps planned with the true simulator, and seconds per step (0, nan: none)
+    """
     if steps == 0:
         return 0.0, float("nan")
-    planner = TrueModelPlanner(env, model)
+    planner = TrueModelPlanner(env, model, budget)
     env.reset(seed=seed)
     total, start = 0.0, time.perf_counter()
     for _ in range(steps):
@@ -163,6 +174,13 @@ def main() -> None:
         help="pets: plan the held-out episode with the same learned model but PETS's action-sequence search "
         "(same CEM budget), to tell a POPLIN search-space problem from a model problem",
     )
+    parser.add_argument(
+        "--true-budget",
+        type=int,
+        nargs=4,
+        metavar=("HORIZON", "POPULATION", "ELITES", "ITERATIONS"),
+        help="plan with the true simulator at this CEM budget instead of the model's (e.g. the paper's 30 500 50 5)",
+    )
     parser.add_argument("--no-record", action="store_true")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
@@ -173,7 +191,7 @@ def main() -> None:
     episode = mpc_episode(controller, env, args.steps, args.seed)
     mpc_time = (time.perf_counter() - start) / len(episode.actions)
     errors = model_error(model, episode, args.stride)
-    true_return, true_time = true_model_episode(env, model, args.true_steps, args.seed)
+    true_return, true_time = true_model_episode(env, model, args.true_steps, args.seed, args.true_budget)
     ran_true = args.true_steps > 0
     mpc_return = float(episode.rewards[: args.true_steps].sum())
     ks = sorted({0, 4, model.horizon - 1} & set(range(model.horizon)))
@@ -194,10 +212,16 @@ def main() -> None:
         f"pop {model.population_size}, elites {model.num_elites}, "
         f"{model.cem_iterations} it"
     )
+    if args.true_budget and ran_true:
+        h_, p_, e_, i_ = args.true_budget
+        budget += f"; true simulator: H {h_}, pop {p_}, elites {e_}, {i_} it"
     h = model.horizon
     command = (
         f"`python benchmarks/diagnose_mpc.py --model {args.model} --env {args.env} --steps {args.steps} "
-        f"--true-steps {args.true_steps} --seed {args.seed}" + (f" --search {args.search}`" if args.search != "own" else "`")
+        f"--true-steps {args.true_steps} --seed {args.seed}"
+        + (f" --search {args.search}" if args.search != "own" else "")
+        + (f" --true-budget {' '.join(map(str, args.true_budget))}" if args.true_budget else "")
+        + "`"
     )
     row = [
         str(datetime.date.today()),

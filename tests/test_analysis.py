@@ -170,3 +170,23 @@ def test_true_simulator_planner_refuses_envs_whose_observation_it_cannot_rebuild
     model = POPLIN("pets", gym.make(env_id, **kwargs), horizon=2, population_size=4, num_elites=2, seed=0)
     with pytest.raises(ValueError, match=r"observation shape .* is not one of them.*--true-steps 0"):
         diagnose.TrueModelPlanner(gym.make(env_id, **kwargs), model)
+
+
+def test_true_simulator_planner_takes_another_budget():
+    """--true-budget: the true-simulator CEM plans at the given horizon/population/elites/iterations, not the agent's."""
+    import gymnasium as gym
+
+    diagnose = load_diagnose_mpc()
+    env_id = "sb3_poplin/PETSCheetah-v0"
+    model = POPLIN("pets", gym.make(env_id), horizon=3, population_size=6, num_elites=2, seed=0)
+    planner = diagnose.TrueModelPlanner(gym.make(env_id), model, (5, 8, 3, 2))
+    assert planner.horizon == 5 and planner.space.horizon == 5
+    assert (planner.cem.population_size, planner.cem.num_elites, planner.cem.iterations) == (8, 3, 2)
+    assert planner.mean.shape[-1] == 5 * 6  # the warm-start mean covers the new horizon
+    env = gym.make(env_id)
+    env.reset(seed=1)
+    planner.env = env.unwrapped
+    action = planner.act()
+    assert action.shape == (6,) and np.all(np.abs(action) <= 1.0)
+    with pytest.raises(ValueError, match=r"four positive integers \(horizon, population, elites, iterations\)"):
+        diagnose.TrueModelPlanner(gym.make(env_id), model, (5, 0, 3, 2))

@@ -283,8 +283,8 @@ def test_predictions_through_the_hooks_equal_a_hand_computation():
         obs_preproc=pets_cheetah_obs_preproc,
         targ_proc=pets_cheetah_targ_proc,
         obs_postproc=pets_cheetah_obs_postproc,
-        standardise_targets=True,
-    )  # fmt: skip  (standardised: the hand computation covers the target scaler too; raw targets: the test below)
+        standardise_targets=True,  # the hand computation covers the target scaler too; raw targets: the test below
+    )
     obs, actions, nxt = th.randn(64, 18), th.rand(64, 6) * 2 - 1, th.randn(64, 18)
     model.fit(obs, actions, nxt, th.optim.Adam(model.parameters()), epochs=1, generator=th.Generator().manual_seed(0))
     s, a = obs[:3], actions[:3]
