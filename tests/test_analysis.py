@@ -190,3 +190,10 @@ def test_true_simulator_planner_takes_another_budget():
     assert action.shape == (6,) and np.all(np.abs(action) <= 1.0)
     with pytest.raises(ValueError, match=r"four positive integers \(horizon, population, elites, iterations\)"):
         diagnose.TrueModelPlanner(gym.make(env_id), model, (5, 0, 3, 2))
+
+
+def test_cheetah_posture_counts_upside_down_pitches_over_full_turns():
+    """cheetah_posture.py: a pitch beyond ±90° is upside down, also after whole turns (the joint angle accumulates)."""
+    posture = load_benchmark("cheetah_posture")
+    pitches = np.array([0.0, 1.5, 1.7, -3.0, 2 * np.pi + 0.1, 2 * np.pi + 3.0, -4 * np.pi - 2.0, 1.0])
+    assert posture.upside_down_share(pitches) == pytest.approx(4 / 8)  # 1.7, -3.0, 2π+3.0, -4π-2.0

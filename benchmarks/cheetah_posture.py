@@ -1,0 +1,69 @@
+"""
+Is a high half-cheetah return a run or a flip? MPC episodes of saved agents with the torso's pitch recorded.
+
+Planners on the half-cheetah sometimes find that the cheetah moves fastest on its back; such episodes score far above
+upright running and make the spread over seeds bimodal. For each model and start seed this prints the MPC return and
+the share of steps with the torso pitch beyond ±90° (upside down), from ``qpos[2]`` of the MuJoCo state.
+
+    python benchmarks/cheetah_posture.py --env sb3_poplin/PETSCheetah-v0 --models a.zip b.zip --seeds 1000 1001
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+
+from sb3_poplin import POPLIN
+from sb3_poplin.tasks import make_env
+
+
+def upside_down_share(pitches: np.ndarray) -> float:
+    """:return: the share of pitches (rad, accumulated over full turns) that point the torso's top downwards"""
+    wrapped = np.angle(np.exp(1j * np.asarray(pitches, dtype=np.float64)))  # to (-pi, pi]
+    return float(np.mean(np.abs(wrapped) > np.pi / 2))
+
+
+def posture_episode(model: POPLIN, env: gym.Env, seed: int, steps: int) -> dict[str, float]:
+    """
+    :return: the MPC return, the share of steps upside down (``|pitch| > pi/2``) and the largest ``|pitch|`` (rad)
+    """
+    obs, _ = env.reset(seed=seed)
+    total, pitches, state = 0.0, [], None
+    for t in range(steps):
+        action, state = model.predict(obs, state=state, episode_start=np.array([t == 0]), deterministic=True)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        total += float(reward)
+        pitches.append(float(env.unwrapped.data.qpos[2]))  # rooty: the torso's pitch, unwrapped
+        if terminated or truncated:
+            break
+    return {
+        "return": total,
+        "upside_down": upside_down_share(np.asarray(pitches)),
+        "max_abs_pitch": float(np.max(np.abs(pitches))),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", required=True, help="a half-cheetah task id (HalfCheetah-v5, sb3_poplin/PETSCheetah-v0)")
+    parser.add_argument("--models", nargs="+", required=True, help="saved POPLIN zips")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1000])
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    env = make_env(args.env)
+    if "rooty" not in {env.unwrapped.model.joint(i).name for i in range(env.unwrapped.model.njnt)}:
+        raise ValueError(f"{args.env} has no 'rooty' joint: this check is for the half-cheetah tasks")
+    for path in args.models:
+        model = POPLIN.load(path, device="cpu")
+        for seed in args.seeds:
+            print(json.dumps({"model": path, "seed": seed, **posture_episode(model, env, seed, args.steps)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
