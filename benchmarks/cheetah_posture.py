@@ -18,6 +18,7 @@ import numpy as np
 import torch as th
 
 from sb3_poplin import POPLIN
+from sb3_poplin.analysis.model_error import mpc_episode
 from sb3_poplin.tasks import make_env
 
 
@@ -27,22 +28,34 @@ def upside_down_share(pitches: np.ndarray) -> float:
     return float(np.mean(np.abs(wrapped) > np.pi / 2))
 
 
+def pitch_index(env: gym.Env) -> int:
+    """
+    :return: where the torso's pitch (``qpos[2]``, joint ``rooty``) sits in the env's observation, which is
+        ``qpos[k:]`` then ``qvel`` (HalfCheetah-v5 drops x: ``k = 1``; PETSCheetah keeps its slot: ``k = 0``)
+    """
+    mj_model = env.unwrapped.model
+    if mj_model.nq < 3 or mj_model.joint(2).name != "rooty":
+        raise ValueError(
+            f"{env.spec.id if env.spec else env}: joint 2 is not 'rooty': this check needs a planar pitch joint (half-cheetah)"
+        )
+    obs, _ = env.reset(seed=0)
+    index = 2 - (mj_model.nq + mj_model.nv - obs.shape[0])
+    if not 0 <= index < obs.shape[0] or obs[index] != env.unwrapped.data.qpos[2]:
+        raise ValueError(f"the observation of {env.spec.id if env.spec else env} is not qpos[k:] followed by qvel")
+    return index
+
+
 def posture_episode(model: POPLIN, env: gym.Env, seed: int, steps: int) -> dict[str, float]:
     """
+    One MPC episode (:func:`sb3_poplin.analysis.model_error.mpc_episode`, as ``diagnose_mpc.py`` plans).
+
     :return: the MPC return, the share of steps upside down (``|pitch| > pi/2``) and the largest ``|pitch|`` (rad)
     """
-    obs, _ = env.reset(seed=seed)
-    total, pitches, state = 0.0, [], None
-    for t in range(steps):
-        action, state = model.predict(obs, state=state, episode_start=np.array([t == 0]), deterministic=True)
-        obs, reward, terminated, truncated, _ = env.step(action)
-        total += float(reward)
-        pitches.append(float(env.unwrapped.data.qpos[2]))  # rooty: the torso's pitch, unwrapped
-        if terminated or truncated:
-            break
+    episode = mpc_episode(model.mpc, env, steps, seed)
+    pitches = episode.obs[1:, pitch_index(env)]  # after each step
     return {
-        "return": total,
-        "upside_down": upside_down_share(np.asarray(pitches)),
+        "return": float(episode.rewards.sum()),
+        "upside_down": upside_down_share(pitches),
         "max_abs_pitch": float(np.max(np.abs(pitches))),
     }
 
@@ -57,8 +70,7 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     env = make_env(args.env)
-    if "rooty" not in {env.unwrapped.model.joint(i).name for i in range(env.unwrapped.model.njnt)}:
-        raise ValueError(f"{args.env} has no 'rooty' joint: this check is for the half-cheetah tasks")
+    pitch_index(env)  # fail before loading any model
     for path in args.models:
         model = POPLIN.load(path, device="cpu")
         for seed in args.seeds:

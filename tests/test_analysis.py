@@ -197,3 +197,24 @@ def test_cheetah_posture_counts_upside_down_pitches_over_full_turns():
     posture = load_benchmark("cheetah_posture")
     pitches = np.array([0.0, 1.5, 1.7, -3.0, 2 * np.pi + 0.1, 2 * np.pi + 3.0, -4 * np.pi - 2.0, 1.0])
     assert posture.upside_down_share(pitches) == pytest.approx(4 / 8)  # 1.7, -3.0, 2π+3.0, -4π-2.0
+
+
+@pytest.mark.parametrize(
+    "env_id, kwargs, index",
+    [
+        ("sb3_poplin/PETSCheetah-v0", {}, 2),
+        ("HalfCheetah-v5", {}, 1),
+        ("HalfCheetah-v5", {"exclude_current_positions_from_observation": False}, 2),
+    ],
+)
+def test_cheetah_posture_finds_the_pitch_in_the_observation(env_id, kwargs, index):
+    """The pitch index is derived from the observation layout and equals qpos[2] after a step; no pitch joint raises."""
+    import gymnasium as gym
+
+    posture = load_benchmark("cheetah_posture")
+    env = gym.make(env_id, **kwargs)
+    assert posture.pitch_index(env) == index
+    obs, *_ = env.step(env.action_space.sample())
+    assert obs[index] == env.unwrapped.data.qpos[2]
+    with pytest.raises(ValueError, match="joint 2 is not 'rooty'"):
+        posture.pitch_index(gym.make("Swimmer-v5"))
