@@ -45,14 +45,15 @@ def pitch_index(env: gym.Env) -> int:
     return index
 
 
-def posture_episode(model: POPLIN, env: gym.Env, seed: int, steps: int) -> dict[str, float]:
+def posture_episode(model: POPLIN, env: gym.Env, seed: int, steps: int, pitch: int) -> dict[str, float]:
     """
     One MPC episode (:func:`sb3_poplin.analysis.model_error.mpc_episode`, as ``diagnose_mpc.py`` plans).
 
+    :param pitch: the pitch's index in the observation (:func:`pitch_index` of ``env``)
     :return: the MPC return, the share of steps upside down (``|pitch| > pi/2``) and the largest ``|pitch|`` (rad)
     """
     episode = mpc_episode(model.mpc, env, steps, seed)
-    pitches = episode.obs[1:, pitch_index(env)]  # after each step
+    pitches = episode.obs[1:, pitch]  # after each step
     return {
         "return": float(episode.rewards.sum()),
         "upside_down": upside_down_share(pitches),
@@ -70,11 +71,12 @@ def main() -> None:
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     env = make_env(args.env)
-    pitch_index(env)  # fail before loading any model
+    pitch = pitch_index(env)  # once, and before loading any model: it resets the env
     for path in args.models:
         model = POPLIN.load(path, device="cpu")
         for seed in args.seeds:
-            print(json.dumps({"model": path, "seed": seed, **posture_episode(model, env, seed, args.steps)}), flush=True)
+            result = posture_episode(model, env, seed, args.steps, pitch)
+            print(json.dumps({"model": path, "seed": seed, **result}), flush=True)
 
 
 if __name__ == "__main__":
