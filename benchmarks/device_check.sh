@@ -3,7 +3,7 @@
 #   1. a virtual environment .venv-gpu with a CUDA-enabled torch and the package,
 #   2. the `cuda` tests (tests/test_cuda.py: CPU/CUDA plan equality, no host round trip while planning, a short
 #      learning run, save on CUDA -> load on CPU and back, bf16 planning),
-#   3. benchmarks/planning_speed.py --device cuda (paper-size plans, fp32 and bf16),
+#   3. benchmarks/speed/planning_speed.py --device cuda (paper-size plans, fp32 and bf16),
 # and appends their rows to benchmarks/RESULTS.md (the lines added are printed at the end).
 #
 #     benchmarks/device_check.sh
@@ -65,7 +65,7 @@ fi
 
 step "planning_speed.py --device cuda (fp32 and bf16)"
 set +e
-timeout 180 "$PY" benchmarks/planning_speed.py --device cuda --repeats 5
+timeout 180 "$PY" benchmarks/speed/planning_speed.py --device cuda --repeats 5
 speed_rc=$?
 set -e
 

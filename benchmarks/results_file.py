@@ -10,7 +10,9 @@ RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "RESULTS.md")
 
 def append_row(section: str, intro: str, header: list[str], row: list[str], path: str = RESULTS) -> None:
     """
-    :param section: the section's heading text (without ``## ``)
+    :param section: the section's heading text (without ``## ``): how a row finds its section, so a script keeps the
+        heading it was first written with, also where the heading names a path the script has since moved from
+        (``benchmarks/planning_speed.py``, now ``benchmarks/speed/planning_speed.py``: ``benchmarks/README.md``)
     :param intro: paragraph written under a new section's heading
     :param header: column names of a new section's table
     :param row: the cells of the row to add, below the last row of the section's table (the one under ``header``;

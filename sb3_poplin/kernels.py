@@ -13,7 +13,8 @@ The speed layer of the ensemble's no-gradient forwards (planning and evaluation)
   update (:class:`ParameterCache`; autocast would cast every weight at every call and mix dtypes in the element-wise
   ops).
 
-Measurements behind these choices are in ``benchmarks/RESULTS.md`` (``planner_parts.py``, ``planning_speed.py``).
+Measurements behind these choices are in ``benchmarks/RESULTS.md`` (``benchmarks/speed/planner_parts.py``,
+``benchmarks/speed/planning_speed.py``).
 """
 
 from __future__ import annotations
@@ -31,13 +32,13 @@ if TYPE_CHECKING:
 
 Layers = list[tuple[th.Tensor, th.Tensor]]
 
-# Rows per member from which the fused per-member oneDNN forward runs; fewer go through the batched matmuls. Measured
-# on an Intel Xeon without AMX (1 thread, ``benchmarks/planner_parts.py --parts 5``): with 100-300 rows the batched
-# matmuls took 0.24-0.86x the fused forward's time for members of 3 x 64, 3 x 128 and 4 x 200 (the CPU budget plans
-# 200 rows); from 400 rows on the wider members were as fast or faster fused (4 x 200: 1.11x at 600 rows, 1.62x at
-# 1000). A whole CPU-budget plan became 1.6-2.5x faster (``plan_time_variants.py --setting cpu|cheetah-cpu``). The two
-# paths agree to float32 rounding, not bit for bit: 0 replays runs made before the threshold existed (on the same
-# host; ``benchmarks/fidelity_ab.py`` does).
+# Rows per member from which the fused per-member oneDNN forward runs; fewer go through the batched matmuls. Measured on an
+# Intel Xeon without AMX (1 thread, ``benchmarks/speed/planner_parts.py --parts 5``): with 100-300 rows the batched matmuls
+# took 0.24-0.86x the fused forward's time for members of 3 x 64, 3 x 128 and 4 x 200 (the CPU budget plans 200 rows); from 400
+# rows on the wider members were as fast or faster fused (4 x 200: 1.11x at 600 rows, 1.62x at 1000). A whole CPU-budget plan
+# became 1.6-2.5x faster (``speed/plan_time_variants.py --setting cpu|cheetah-cpu``). The two paths agree to float32 rounding,
+# not bit for bit: 0 replays runs made before the threshold existed (on the same host; ``benchmarks/probes/fidelity_ab.py``
+# does).
 FUSED_MIN_ROWS = 320
 
 

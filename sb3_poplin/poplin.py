@@ -19,7 +19,7 @@ from __future__ import annotations
 import io
 import math
 import pathlib
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any, ClassVar, TypeVar
 
 import gymnasium as gym
@@ -165,6 +165,12 @@ class POPLIN(OffPolicyAlgorithm):
     holdout_ratio: float
     standardise_targets: bool
     learned_reward: bool | None
+    # not keyword arguments: whether the dynamics model takes PETS's hooks (obs_preproc, targ_proc, obs_postproc)
+    # from the task (False for a zip of a release before 0.3.0: saving.INTERNAL_BEFORE_0_3; the task's
+    # model_input_exclude is taken either way), and the release that saved the zip this agent was loaded from (None
+    # for an agent made here; ``save`` records the running release, not this one)
+    task_model_hooks: bool
+    sb3_poplin_version: str | None
 
     def __init__(
         self,
@@ -231,6 +237,8 @@ class POPLIN(OffPolicyAlgorithm):
         self.user_reward_fn = reward_fn
         self.user_termination_fn = termination_fn
         self._model_fitted = False
+        self.task_model_hooks = True
+        self.sb3_poplin_version = None
 
         default_train_freq = train_freq is None
         super().__init__(
@@ -271,6 +279,8 @@ class POPLIN(OffPolicyAlgorithm):
         reward_fn, termination_fn, model_hooks, self.learned_reward = resolve_task(
             self.task_id, self.user_reward_fn, self.user_termination_fn, self.learned_reward
         )
+        if not self.task_model_hooks:  # a zip of a release before 0.3.0: its model was trained without PETS's hooks
+            model_hooks.update(obs_preproc=None, targ_proc=None, obs_postproc=None)
         self.policy_kwargs = dict(
             ensemble_size=self.ensemble_size,
             dynamics_net_arch=self.dynamics_net_arch,
@@ -451,7 +461,9 @@ class POPLIN(OffPolicyAlgorithm):
     ) -> SelfPOPLIN:
         """
         Load a saved agent (an env is optional: planning needs none), also one saved by sb3_poplin 0.1.0 or 0.2.0
-        (the settings added since take the behaviour of its release). Same arguments as SB3's ``load``, plus:
+        (the settings added since take the behaviour of its release, and its model runs without the task's PETS
+        hooks, as it was trained). ``sb3_poplin_version`` names the release that saved the zip. Same arguments as
+        SB3's ``load``, plus:
 
         :param control: ``"mpc"`` or ``"policy"`` to override the saved control mode
         """
@@ -460,6 +472,27 @@ class POPLIN(OffPolicyAlgorithm):
         if control is not None:
             model.control = control
         return model
+
+    def save(
+        self,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        exclude: Iterable[str] | None = None,
+        include: Iterable[str] | None = None,
+    ) -> None:
+        """
+        SB3's ``save``; the zip's ``data`` also records the running release (``sb3_poplin_version``), also when this
+        agent was loaded from a zip of another release (its ``sb3_poplin_version`` stays that release's).
+
+        :param path: path to the file where the agent should be saved
+        :param exclude: names of attributes to exclude in addition to the default ones
+        :param include: names of attributes that might be excluded but should be included anyway
+        """
+        loaded_from = self.sb3_poplin_version
+        self.sb3_poplin_version = saving.current_release()
+        try:
+            super().save(path, exclude, include)
+        finally:
+            self.sb3_poplin_version = loaded_from
 
     def set_parameters(
         self, load_path_or_dict: str | TensorDict, exact_match: bool = True, device: th.device | str = "auto"

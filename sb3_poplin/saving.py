@@ -6,6 +6,10 @@ controller's state (``mpc.pth``: the planner's random generator and warm start) 
 distiller's (``distiller.pth``: the planned steps not yet distilled and the distillation window). Release 0.1.0 kept
 both inside ``data`` as one pickled ``_saved_planner_state`` dict; :func:`upgrade_legacy_state` turns it into the two
 state dicts, so those zips load as they are.
+
+Since 0.3.0 a zip records the release that saved it (``sb3_poplin_version`` in ``data``); :func:`saved_release`
+infers it for the zips of earlier releases, and :func:`check_saved_agent` gives what such a zip needs to continue as
+it was trained.
 """
 
 from __future__ import annotations
@@ -21,10 +25,45 @@ from typing import Any
 import torch as th
 
 LEGACY_VERSION = "0.1.0"
+# the key of a zip's data (and the attribute of a loaded POPLIN) naming the release that saved it
+VERSION_KEY = "sb3_poplin_version"
+RELEASES_BEFORE_0_3 = (LEGACY_VERSION, "0.2.0")
 # settings added in 0.3.0, with the behaviour of the releases before: a zip without them continues as it was trained
 SETTINGS_BEFORE_0_3: dict[str, Any] = dict(
     whitening="function_from_raw", avg_update="add", distill_target="executed", standardise_targets=True
 )
+# what else 0.3.0 changed, held by attributes that are not POPLIN keyword arguments, with the behaviour of the
+# releases before; restored for their zips only (a 0.3.0 zip lacks these attributes too but keeps 0.3.0's behaviour).
+# ``task_model_hooks``: the model takes PETS's hooks (obs_preproc, targ_proc, obs_postproc) from the task, which
+# sb3_poplin/PETSCheetah-v0 has since 0.3.0; its earlier zips' models were trained without them
+INTERNAL_BEFORE_0_3: dict[str, Any] = dict(task_model_hooks=False)
+
+
+def current_release() -> str:
+    """:return: this package's release (``sb3_poplin.__version__``), which ``POPLIN.save`` records in a zip"""
+    from sb3_poplin import __version__  # here, not at the top: the package imports this module before setting it
+
+    return __version__
+
+
+def saved_release(names: set[str], data: dict[str, Any]) -> str:
+    """
+    The release that saved a POPLIN zip: recorded in its ``data`` since 0.3.0, inferred for earlier zips from what
+    they hold.
+
+    :param names: the zip's member names
+    :param data: the zip's ``data`` (SB3's JSON)
+    :return: the recorded release; else ``"0.1.0"`` without ``mpc.pth``, ``"0.2.0"`` without one of the settings
+        added in 0.3.0 (:data:`SETTINGS_BEFORE_0_3`), ``"0.3.0"`` otherwise (saved before releases recorded
+        themselves)
+    """
+    if VERSION_KEY in data:
+        return str(data[VERSION_KEY])
+    if "mpc.pth" not in names:
+        return LEGACY_VERSION
+    if any(key not in data for key in SETTINGS_BEFORE_0_3):
+        return "0.2.0"
+    return "0.3.0"
 
 
 def check_saved_agent(path: str | pathlib.Path | io.BufferedIOBase) -> dict[str, Any]:
@@ -32,8 +71,10 @@ def check_saved_agent(path: str | pathlib.Path | io.BufferedIOBase) -> dict[str,
     Reject, with the reason and the fix, anything that is not a complete POPLIN zip.
 
     :param path: what was given to ``POPLIN.load``
-    :return: the settings this zip's release did not save, with that release's behaviour
-        (:data:`SETTINGS_BEFORE_0_3`), to restore with the agent
+    :return: the attributes to restore with the agent that the zip does not hold: the settings its release did not
+        save, with that release's behaviour (:data:`SETTINGS_BEFORE_0_3`, and :data:`INTERNAL_BEFORE_0_3` for a
+        release before 0.3.0), and the release that saved it (``sb3_poplin_version``, :func:`saved_release`) when the
+        zip does not record it
     :raises FileNotFoundError: no file at ``path`` (nor ``path.zip``)
     :raises ValueError: not a zip, corrupted, saved by another algorithm, or incomplete
     """
@@ -80,7 +121,13 @@ def check_saved_agent(path: str | pathlib.Path | io.BufferedIOBase) -> dict[str,
             f"sb3_poplin {LEGACY_VERSION} (_saved_planner_state in data): it was not written by a released "
             "POPLIN.save. Save the agent again with POPLIN.save."
         )
-    return {key: value for key, value in SETTINGS_BEFORE_0_3.items() if key not in data}
+    release = saved_release(names, data)
+    restored = {key: value for key, value in SETTINGS_BEFORE_0_3.items() if key not in data}
+    if release in RELEASES_BEFORE_0_3:
+        restored.update({key: value for key, value in INTERNAL_BEFORE_0_3.items() if key not in data})
+    if VERSION_KEY not in data:
+        restored[VERSION_KEY] = release
+    return restored
 
 
 def upgrade_legacy_state(saved: dict[str, Any], with_distiller: bool) -> dict[str, dict[str, Any]]:

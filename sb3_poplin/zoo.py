@@ -22,6 +22,9 @@ argument parser is built. This module adds ``poplin`` to that table (and an optu
 * POPLIN-A/P runs also evaluate policy control (the distilled network alone) at the same steps as the
   zoo's MPC evaluation and write ``evaluations_policy.npz`` next to ``evaluations.npz``
   (``--no-policy-eval`` turns it off).
+* ``train --checkpoints`` saves a checkpoint after every episode (``sb3_poplin.resume``) and ``train --resume RUN_DIR``
+  continues a killed run in its folder from its last checkpoint, with nothing recorded twice or lost.
+* ``compare`` runs the head-to-head of algorithms x tasks x seeds and writes its report (``sb3_poplin.compare``).
 * ``enjoy`` and ``record_video`` load POPLIN with a one-transition replay buffer.
 * ``plots`` saves every figure of the zoo's plot scripts as a PNG (``--output-dir``, default ``.``);
   ``--show`` also displays them.
@@ -36,6 +39,7 @@ import os
 import pathlib
 import re
 import runpy
+import shutil
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -48,6 +52,7 @@ from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
 from stable_baselines3.common.type_aliases import GymEnv
 
+from sb3_poplin import resume
 from sb3_poplin.callbacks import ControlModesEvalCallback
 from sb3_poplin.poplin import POPLIN
 from sb3_poplin.presets import HYPERPARAMS_DIR, PACKAGED_ALGOS, config_path, load_config
@@ -56,7 +61,7 @@ from sb3_poplin.variants import POLICY_VARIANTS
 
 ALGO = "poplin"
 PLOT_COMMANDS = ("all_plots", "plot_train", "plot_from_file")
-COMMANDS = ("train", "enjoy", "record_video", "plots", *PLOT_COMMANDS)
+COMMANDS = ("train", "compare", "enjoy", "record_video", "plots", *PLOT_COMMANDS)
 
 SelfPlayedPOPLIN = TypeVar("SelfPlayedPOPLIN", bound="PlayedPOPLIN")
 
@@ -187,7 +192,20 @@ class PoplinExperimentManager(ExperimentManager):
 
     #: add a policy-control evaluation next to the zoo's MPC evaluation (POPLIN-A/P runs)
     policy_eval: ClassVar[bool] = True
+    #: save a checkpoint after every episode (``sb3_poplin.resume``)
+    checkpoints: ClassVar[bool] = False
+    #: continue the run in this folder from its last checkpoint (implies ``checkpoints``)
+    resume_dir: ClassVar[str | None] = None
     poplin_variant: str | None = None
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.checkpointing = self.checkpoints or self.resume_dir is not None
+        self.training_finished = False
+        self.lock: resume.RunLock | None = None
+        if self.resume_dir is not None:
+            self.save_path = os.path.abspath(self.resume_dir)
+            self.params_path = f"{self.save_path}/{self.env_name}"
 
     def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
         """
@@ -236,6 +254,77 @@ class PoplinExperimentManager(ExperimentManager):
                 deterministic=self.deterministic_eval,
             )
         )
+
+    def create_envs(self, n_envs: int, eval_env: bool = False, no_log: bool = False) -> Any:
+        """rl-zoo3's envs; with checkpoints, the training env's resets are recorded (to replay them on resume)."""
+        env = super().create_envs(n_envs, eval_env, no_log)
+        if self.checkpointing and not eval_env and resume.dummy_vec_env(env) is not None:
+            resume.record_resets(env)
+        return env
+
+    def setup_experiment(self) -> Any:
+        """
+        rl-zoo3's set-up; with checkpoints, the run's folder is locked, a checkpoint callback added and, with
+        ``--resume``, the run continued from its last checkpoint (or started again in its folder when it has none).
+        """
+        if not self.checkpointing or self.optimize_hyperparameters:
+            return super().setup_experiment()
+        self.lock = resume.RunLock(self.save_path)
+        self.lock.acquire()  # before the Monitor's CSV is opened for writing
+        result = super().setup_experiment()
+        if result is None:
+            return result
+        model, saved_hyperparams = result
+        env = model.get_env()
+        assert env is not None
+        reason = resume.unsupported_reason(model, env)
+        if reason is not None:
+            print(f"warning: no checkpoints for this run ({reason}); an interrupted run starts again from zero")
+            self.checkpointing = False
+            return result
+        checkpoint = resume.latest_checkpoint(self.save_path) if self.resume_dir is not None else None
+        if checkpoint is not None:
+            model = resume.restore_checkpoint(checkpoint, type(model), env, self.callbacks, device=model.device)
+            print(f"Resumed {self.save_path} from {checkpoint.name} ({model.num_timesteps} of {self.n_timesteps} steps)")
+        elif self.resume_dir is not None:
+            # killed before its first checkpoint: start again in the same folder, without what the killed run wrote
+            for path in pathlib.Path(self.save_path).iterdir():
+                if path.is_file() and (path.name == "best_model.zip" or resume.RESULT_FILE_PATTERN.match(path.name)):
+                    if not path.name.endswith(".monitor.csv"):  # the new Monitor has just started it again
+                        path.unlink()
+            print(f"Starting {self.save_path} again: it has no checkpoint")
+        self.callbacks.append(resume.EpisodeCheckpointCallback(self.save_path, list(self.callbacks)))
+        return model, saved_hyperparams
+
+    def learn(self, model: Any) -> None:
+        """rl-zoo3's ``learn``; a resumed run trains the steps it has left."""
+        if not self.checkpointing:
+            super().learn(model)
+            return
+        kwargs: dict[str, Any] = {"callback": self.callbacks}
+        if self.log_interval > -1:
+            kwargs["log_interval"] = self.log_interval
+        elif self.log_interval < -1:
+            kwargs["log_interval"] = None
+        try:
+            if model.num_timesteps < self.n_timesteps:
+                resumed = model.num_timesteps > 0
+                model.learn(self.n_timesteps - model.num_timesteps, reset_num_timesteps=not resumed, **kwargs)
+            self.training_finished = model.num_timesteps >= self.n_timesteps
+        except KeyboardInterrupt:
+            pass  # saved as rl-zoo3 does; the checkpoints stay, so the run can be resumed
+        finally:
+            self.callbacks[0].on_training_end()
+            if model.env is not None:
+                model.env.close()
+
+    def save_trained_model(self, model: Any) -> None:
+        """rl-zoo3's save; a run that finished training then drops its checkpoints."""
+        super().save_trained_model(model)
+        if self.checkpointing and self.training_finished:
+            shutil.rmtree(os.path.join(self.save_path, resume.CHECKPOINT_FOLDER), ignore_errors=True)
+        if self.lock is not None:
+            self.lock.release()
 
 
 def register() -> None:
@@ -340,8 +429,14 @@ def _train(args: Sequence[str]) -> None:
     """
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument("--no-policy-eval", action="store_true")
+    parser.add_argument("--checkpoints", action="store_true")
+    parser.add_argument("--resume")
     own, rest = parser.parse_known_args(list(args))
+    if own.resume is not None and not os.path.isdir(own.resume):
+        raise SystemExit(f"--resume {own.resume}: no such run folder. Give the folder of the run to continue.")
     PoplinExperimentManager.policy_eval = not own.no_policy_eval
+    PoplinExperimentManager.checkpoints = own.checkpoints
+    PoplinExperimentManager.resume_dir = own.resume
     # rl_zoo3.train() builds its ExperimentManager from this module attribute
     setattr(rl_zoo3.train, "ExperimentManager", PoplinExperimentManager)  # noqa: B010
     with _argv("sb3-poplin-zoo train", train_args(rest)):
@@ -431,7 +526,10 @@ USAGE = f"""usage: sb3-poplin-zoo COMMAND [ARGS...]   (or: python -m sb3_poplin.
 rl-zoo3 with POPLIN registered as --algo {ALGO}. Commands:
   train         rl-zoo3 train; --conf-file defaults to sb3_poplin/hyperparams/<algo>.yml for
                 {", ".join(PACKAGED_ALGOS)} when it has the env; --no-policy-eval skips the
-                policy-control evaluation (evaluations_policy.npz) of POPLIN-A/P runs
+                policy-control evaluation (evaluations_policy.npz) of POPLIN-A/P runs;
+                --checkpoints saves a checkpoint after every episode, --resume RUN_DIR continues
+                a killed run from its last one
+  compare       the head-to-head: algorithms x tasks x seeds, run (resumable) and reported
   enjoy         rl-zoo3 enjoy (POPLIN is loaded with a one-transition replay buffer)
   record_video  rl-zoo3 record_video
   plots NAME    one of {", ".join(PLOT_COMMANDS)} (also accepted as commands); every figure is saved
@@ -455,6 +553,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     command, rest = args[0], args[1:]
     if command not in COMMANDS:
         raise SystemExit(f"Unknown command {command!r}; accepted values: {list(COMMANDS)}\n\n{USAGE}")
+    if command == "compare":
+        from sb3_poplin import compare
+
+        raise SystemExit(compare.main(rest))
     register()
     if command == "train":
         _train(rest)

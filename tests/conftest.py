@@ -23,9 +23,19 @@ def tiny(variant: str = "pets", env: Any = "Pendulum-v1", **kwargs: Any) -> POPL
     return POPLIN(variant, env, seed=0, **{**TINY, **kwargs})
 
 
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
+
+
 def load_benchmark(name: str) -> ModuleType:
-    """Import ``benchmarks/<name>.py`` as module ``name`` (registered in ``sys.modules``: dataclasses look it up)."""
-    path = Path(__file__).resolve().parent.parent / "benchmarks" / f"{name}.py"
+    """
+    Import the benchmark script ``name`` as module ``name`` (registered in ``sys.modules``: dataclasses look it up):
+    ``benchmarks/<name>.py`` (``results_file``, ``compare``) or ``benchmarks/<folder>/<name>.py`` (``speed``,
+    ``diagnosis``, ``probes``; ``benchmarks/README.md`` lists them).
+    """
+    found = [BENCHMARKS / f"{name}.py", *sorted(BENCHMARKS.glob(f"*/{name}.py"))]
+    found = [path for path in found if path.is_file()]
+    assert len(found) == 1, f"benchmark script {name!r}: expected one benchmarks/[<folder>/]{name}.py, found {found}"
+    path = found[0]
     spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)

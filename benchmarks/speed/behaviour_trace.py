@@ -6,9 +6,9 @@ every network after ``learn``, the replay buffer's actions, MPC ``predict`` on f
 the returned state passed back), policy control where there is a policy, and the same MPC call after a save/load
 round trip. Only the public API is used, so the same script runs on the code before and after a change::
 
-    python benchmarks/behaviour_trace.py record before.pt --threads 1   # on the old code
-    python benchmarks/behaviour_trace.py record after.pt --threads 1    # on the new code
-    python benchmarks/behaviour_trace.py compare before.pt after.pt     # bit for bit
+    python benchmarks/speed/behaviour_trace.py record before.pt --threads 1   # on the old code
+    python benchmarks/speed/behaviour_trace.py record after.pt --threads 1    # on the new code
+    python benchmarks/speed/behaviour_trace.py compare before.pt after.pt     # bit for bit
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ Every POPLIN configuration on Pendulum-v1 with the CPU planner settings: MPC and
 returns after a fixed number of env steps, and wall time. Adds one row per configuration to
 benchmarks/RESULTS.md.
 
-    python benchmarks/pendulum_variants.py [--configs poplin-a/init poplin-p/sep/avg ...] [--steps 3000]
+    python benchmarks/probes/pendulum_variants.py [--configs poplin-a/init poplin-p/sep/avg ...] [--steps 3000]
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ from sb3_poplin import POPLIN
 from sb3_poplin.presets import poplin_settings
 from sb3_poplin.variants import NAMED_CONFIGURATIONS, configuration
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+# benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from results_file import append_row, describe_machine
 
 DEFAULT_CONFIGS = ["pets", "poplin-a/init", "poplin-a/replan", "poplin-p/sep/avg", "poplin-p/sep/bc", "poplin-p/sep/gan"]

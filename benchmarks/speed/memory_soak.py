@@ -3,7 +3,7 @@ Resident memory over many training iterations: RSS after every model fit + disti
 small replay buffer and distillation window that fill early, RSS must stay flat once both are full. Adds one row to
 benchmarks/RESULTS.md.
 
-    python benchmarks/memory_soak.py [--variant poplin-p] [--iterations 25] [--buffer-size 2000]
+    python benchmarks/speed/memory_soak.py [--variant poplin-p] [--iterations 25] [--buffer-size 2000]
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 from sb3_poplin import POPLIN
 from sb3_poplin.presets import poplin_settings
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+# benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from results_file import append_row, describe_machine
 
 

@@ -13,7 +13,7 @@ Model error or planner error? Diagnose a trained agent on a MuJoCo task.
    env's exact state) for ``--true-steps`` steps from the same reset. If this return is far above the
    learned-model MPC return, the model is what limits the agent; if it is not, the planner budget is.
 
-    python benchmarks/diagnose_mpc.py --model logs/.../HalfCheetah-v5.zip --env HalfCheetah-v5
+    python benchmarks/diagnosis/diagnose_mpc.py --model logs/.../HalfCheetah-v5.zip --env HalfCheetah-v5
 
 Adds one row to benchmarks/RESULTS.md (section "MPC diagnosis") unless ``--no-record``.
 """
@@ -42,7 +42,8 @@ from sb3_poplin.planning import CEM, ActionSequences
 from sb3_poplin.tasks import make_env, make_task
 from sb3_poplin.variants import VARIANTS, replanner
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+# benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from results_file import append_row, describe_machine
 
 
@@ -217,7 +218,7 @@ def main() -> None:
         budget += f"; true simulator: H {h_}, pop {p_}, elites {e_}, {i_} it"
     h = model.horizon
     command = (
-        f"`python benchmarks/diagnose_mpc.py --model {args.model} --env {args.env} --steps {args.steps} "
+        f"`python benchmarks/diagnosis/diagnose_mpc.py --model {args.model} --env {args.env} --steps {args.steps} "
         f"--true-steps {args.true_steps} --seed {args.seed}"
         + (f" --search {args.search}" if args.search != "own" else "")
         + (f" --true-budget {' '.join(map(str, args.true_budget))}" if args.true_budget else "")
@@ -250,8 +251,8 @@ def main() -> None:
         "command",
     ]
     intro = (
-        "Model error or planner error (`benchmarks/diagnose_mpc.py`): a held-out MPC episode with the learned model, "
-        "the ensemble's open-loop prediction error along it, and the same CEM planning with the true simulator."
+        "Model error or planner error (`benchmarks/diagnosis/diagnose_mpc.py`): a held-out MPC episode with the learned "
+        "model, the ensemble's open-loop prediction error along it, and the same CEM planning with the true simulator."
     )
     append_row("MPC diagnosis", intro, header, row)
 

@@ -3,7 +3,7 @@ How many epochs per model fit does a MuJoCo task need? Fits the dynamics ensembl
 exploratory data (uniform and smoothed random actions) with several epoch counts and reports the open-loop
 prediction error on a held-out episode, in units of each state dimension's standard deviation.
 
-    python benchmarks/model_fit_epochs.py [--env HalfCheetah-v5] [--epochs 5 25 60]
+    python benchmarks/probes/model_fit_epochs.py [--env HalfCheetah-v5] [--epochs 5 25 60]
 
 Adds one row to benchmarks/RESULTS.md (section "Model fit epochs").
 """
@@ -23,7 +23,8 @@ import torch as th
 from sb3_poplin import POPLIN
 from sb3_poplin.tasks import make_env
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+# benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from results_file import append_row, describe_machine
 
 
@@ -86,7 +87,7 @@ def main() -> None:
         cells.append(cell)
     row = [
         str(datetime.date.today()),
-        f"`python benchmarks/model_fit_epochs.py --env {args.env} --epochs {' '.join(map(str, args.epochs))}`",
+        f"`python benchmarks/probes/model_fit_epochs.py --env {args.env} --epochs {' '.join(map(str, args.epochs))}`",
         f"{args.env}, {len(obs)} transitions, 5 x {args.arch} ensemble, batch 32",
         "; ".join(cells),
         describe_machine(1),

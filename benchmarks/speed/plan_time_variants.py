@@ -3,7 +3,7 @@ Plan time of POPLIN-A and POPLIN-P against PETS at the same population, horizon 
 measured in one process (median of ``--repeats`` ``predict`` calls after warm-up). Appends one row
 per setting to benchmarks/RESULTS.md with the ratios to PETS.
 
-    python benchmarks/plan_time_variants.py [--setting paper|cpu|cheetah-cpu] [--repeats 5] [--threads 1]
+    python benchmarks/speed/plan_time_variants.py [--setting paper|cpu|cheetah-cpu] [--repeats 5] [--threads 1]
         [--fused-min-rows N]
 
 ``paper``: HalfCheetah-v5 sizes (17-dim obs, 6-dim action), population 500, horizon 30, 5 CEM
@@ -28,7 +28,9 @@ from sb3_poplin import POPLIN, kernels
 from sb3_poplin.presets import poplin_settings
 from sb3_poplin.variants import configuration
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # speed/: planning_speed
+# benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from planning_speed import time_plans
 from results_file import append_row, describe_machine
 

@@ -2,7 +2,7 @@
 Train a POPLIN agent with the packaged CPU settings of an env (``poplin_cpu.yml``) and save it, for the analyses
 (``python -m sb3_poplin.analysis``):
 
-    python benchmarks/train_analysis_model.py --env HalfCheetah-v5 --steps 10000 --out benchmarks/analysis/models
+    python benchmarks/diagnosis/train_analysis_model.py --env HalfCheetah-v5 --steps 10000 --out benchmarks/analysis/models
 """
 
 from __future__ import annotations

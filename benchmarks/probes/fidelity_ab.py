@@ -28,9 +28,9 @@ Arms (POPLIN keyword arguments on top of the task's CPU settings from ``poplin_c
 Protocol per run: ``learn(steps)`` from seed k; the training episodes' returns; then MPC and policy control
 (POPLIN-A/P) on deterministic evaluation episodes of a fresh env seeded 1000 + k.
 
-    python benchmarks/fidelity_ab.py --task Pendulum-v1 --configs poplin-p/sep/avg poplin-p/sep/bc \\
+    python benchmarks/probes/fidelity_ab.py --task Pendulum-v1 --configs poplin-p/sep/avg poplin-p/sep/bc \\
         --arms v0.2 original --seeds 0 1 2 3 --jobs 2
-    python benchmarks/fidelity_ab.py --report --paired v0.3
+    python benchmarks/probes/fidelity_ab.py --report --paired v0.3
 """
 
 from __future__ import annotations
@@ -54,13 +54,15 @@ from sb3_poplin import POPLIN
 from sb3_poplin.saving import SETTINGS_BEFORE_0_3
 from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, configuration, original_code_settings
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+# benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from results_file import describe_machine
 
 HERE = Path(__file__).resolve().parent
-OUTPUT = HERE / "fidelity_ab"
+# the run records stay in benchmarks/fidelity_ab/ (committed), beside the other result folders, not in probes/
+OUTPUT = HERE.parent / "fidelity_ab"
 # the trained agents (no replay buffer), for the MPC diagnosis (diagnose_mpc.py); not committed
-MODELS = HERE / "fidelity_ab_models"
+MODELS = HERE.parent / "fidelity_ab_models"
 STEPS = {"Pendulum-v1": 3000, "sb3_poplin/PETSCheetah-v0": 10_000}
 # the PETSCheetah task as 0.2.0 modelled it (raw observations in, deltas out): the same env under another id
 RAW_CHEETAH = "sb3_poplin_ab/PETSCheetahRawModel-v0"

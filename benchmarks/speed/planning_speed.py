@@ -2,7 +2,7 @@
 Planner speed at the paper setting, against this machine's own matmul peak (measured in the same
 process, at the same thread count). Adds one row per run to benchmarks/RESULTS.md.
 
-    python benchmarks/planning_speed.py [--threads 1] [--repeats 5] [--quick] [--envs 1] [--device cpu]
+    python benchmarks/speed/planning_speed.py [--threads 1] [--repeats 5] [--quick] [--envs 1] [--device cpu]
 
 Paper setting: HalfCheetah-v5 sizes, population 500, horizon 30, 5 CEM iterations, 50 elites, a
 5-member 4x200 ensemble; expectation propagation and 20-particle TS-infinity; PETS, POPLIN-A (init)
@@ -32,7 +32,8 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_poplin import POPLIN
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+# benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from results_file import append_row, describe_machine
 
 ENV_ID = "HalfCheetah-v5"

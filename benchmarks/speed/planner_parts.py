@@ -3,7 +3,7 @@ Where the planner's time goes that the matmul roofline does not show, measured p
 (each pair of alternatives interleaved over ``--rounds`` rounds; the median per-round ratio is reported, so the
 drift of a shared machine affects both sides alike). Adds one row per part to benchmarks/RESULTS.md.
 
-    python benchmarks/planner_parts.py [--threads 2] [--rounds 15]
+    python benchmarks/speed/planner_parts.py [--threads 2] [--rounds 15]
 
 Parts, at the paper setting's sizes:
 
@@ -20,7 +20,7 @@ Parts, at the paper setting's sizes:
 5. The expectation forward at the CPU budget's sizes (5 members of 3 x 64, 3 x 128 and 4 x 200, 100-1000 rows): the
    fused per-member oneDNN layers against the batched matmuls, the ratio behind ``kernels.FUSED_MIN_ROWS``.
 
-    python benchmarks/planner_parts.py --threads 1 --parts 5
+    python benchmarks/speed/planner_parts.py --threads 1 --parts 5
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ from sb3_poplin.dynamics import ProbabilisticEnsemble
 from sb3_poplin.kernels import ParameterCache, onednn_fused_linear
 from sb3_poplin.sampling import CandidateSampler, Workspace, run_shares, split_range, truncated_normal
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+# benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from results_file import append_row, describe_machine
 
 

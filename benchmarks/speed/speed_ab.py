@@ -3,8 +3,8 @@ Planner speed of two code versions, A/B: run this script alternately under each 
 the other checkout) and compare the printed fractions of the sgemm peak. Uses only the public API (``POPLIN``,
 ``predict``), so it runs on any version; the FLOPs are counted here, not by the package.
 
-    PYTHONPATH=../old python benchmarks/speed_ab.py --label old --threads 1
-    python benchmarks/speed_ab.py --label new --threads 1
+    PYTHONPATH=../old python benchmarks/speed/speed_ab.py --label old --threads 1
+    python benchmarks/speed/speed_ab.py --label new --threads 1
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import torch as th
 import sb3_poplin
 from sb3_poplin import POPLIN
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # speed/: planning_speed
 from planning_speed import ENV_ID, PAPER, matmul_peak, time_plans
 
 ARCH = (200, 200, 200, 200)

@@ -5,7 +5,7 @@ Planners on the half-cheetah sometimes find that the cheetah moves fastest on it
 upright running and make the spread over seeds bimodal. For each model and start seed this prints the MPC return and
 the share of steps with the torso pitch beyond ±90° (upside down), from ``qpos[2]`` of the MuJoCo state.
 
-    python benchmarks/cheetah_posture.py --env sb3_poplin/PETSCheetah-v0 --models a.zip b.zip --seeds 1000 1001
+    python benchmarks/diagnosis/cheetah_posture.py --env sb3_poplin/PETSCheetah-v0 --models a.zip b.zip --seeds 1000 1001
 """
 
 from __future__ import annotations

@@ -1,0 +1,384 @@
+"""
+The head-to-head command ``sb3-poplin-zoo compare`` (``sb3_poplin.compare``): planning the runs, the report, local
+and Ray execution, and resuming: complete runs are reused, killed runs continue from their last checkpoint.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch as th
+import yaml
+
+from sb3_poplin import compare as compare_module
+from sb3_poplin import resume
+from test_zoo import TINY_POPLIN, run
+
+
+# ------------------------------------------------------------------------------------------------ compare.py
+def compare(tmp_path: Path, *extra: str) -> tuple[dict, str]:
+    params = [f"poplin:{setting}" for setting in TINY_POPLIN]
+    args = ["--algos", "poplin", "sac", "--envs", "Pendulum-v1", "-n", "400", "--n-evals", "2", "--eval-episodes", "2"]
+    args += ["--log-folder", str(tmp_path / "logs"), "--output", str(tmp_path / "report"), "--params", *params, *extra]
+    process = run([sys.executable, "-m", "sb3_poplin.zoo", "compare", *args], tmp_path, timeout=900)
+    assert (tmp_path / "report" / "curves_Pendulum-v1.png").stat().st_size > 0
+    table = (tmp_path / "report" / "results.md").read_text()
+    assert "| Pendulum-v1 | 400 |" in table and "POPLIN-P (policy)" in table and "SAC" in table
+    return json.loads((tmp_path / "report" / "results.json").read_text()), process.stdout
+
+
+@pytest.mark.slow
+def test_compare_locally(tmp_path: Path) -> None:
+    results, output = compare(tmp_path, "--seeds", "0", "1", "--jobs", "2")
+    assert output.count("[done]") == 4
+    labels = results["tasks"][0]["labels"]
+    assert sorted(labels) == ["POPLIN-P (MPC)", "POPLIN-P (policy)", "SAC"]
+    assert all(len(entry["final"]) == 2 for entry in labels.values())
+    # a second call finds the complete runs and trains nothing
+    again, output = compare(tmp_path, "--seeds", "0", "1", "--jobs", "2")
+    assert output.count("[reused]") == 4 and again["tasks"] == results["tasks"]
+
+
+def test_compare_through_local_ray(tmp_path: Path) -> None:
+    results, output = compare(tmp_path, "--seeds", "0", "--jobs", "2", "--ray-address", "local")
+    assert output.count("[done]") == 2
+    assert all(run["returncode"] == 0 and run["run_dir"] for run in results["runs"])
+
+
+def test_compare_runs_poplin_variants_by_name(tmp_path: Path) -> None:
+    algos = ["--algos", "pets", "poplin-a", "poplin", "sac", "rs", "--envs", "Pendulum-v1"]
+    options = compare_module.parse_args(
+        [*algos, "--seeds", "0", "-n", "400", "--log-folder", str(tmp_path), "--params", "pets:horizon:5"]
+    )
+    jobs = {job.algo: job for job in compare_module.plan_jobs(options)}
+    assert [job.zoo_algo for job in jobs.values()] == ["poplin", "poplin", "poplin", "sac", "poplin"]
+    assert jobs["pets"].params == ["policy:'pets'", "horizon:5"]
+    assert jobs["poplin-a"].params == ["policy:'poplin-a'"]
+    # random shooting evaluates as many candidates per step as CEM: poplin_cpu.yml's 200 x 3, the paper file's 500 x 5
+    assert jobs["rs"].params == ["policy:'rs'", "population_size:600"]
+    paper = compare_module.parse_args(
+        ["--algos", "rs", "--envs", "Pendulum-v1", "--budget", "paper", "--log-folder", str(tmp_path)]
+    )
+    assert compare_module.plan_jobs(paper)[0].params == ["policy:'rs'", "population_size:2500"]
+    given = compare_module.parse_args(
+        ["--algos", "rs", "--envs", "Pendulum-v1", "--params", "rs:population_size:50", "--log-folder", str(tmp_path)]
+    )
+    assert compare_module.plan_jobs(given)[0].params == ["policy:'rs'", "population_size:50"]
+    assert jobs["pets"].command()[3:8] == ["train", "--algo", "poplin", "--env", "Pendulum-v1"]
+    # report columns: the variant that runs (poplin alone: the file's variant)
+    assert [job.column for job in jobs.values()] == ["pets", "poplin-a", "poplin-p", "sac", "rs"]
+    assert jobs["pets"].name != jobs["poplin-a"].name  # separate log files
+    assert compare_module.label_algo("PETS (MPC)") == "pets"
+    assert compare_module.label_algo("POPLIN-A (policy)") == "poplin-a"
+    assert compare_module.label_algo("SAC") == "sac"
+    # a run's args.yml only matches the job of its own variant
+    # Pendulum-v1's 200-step episodes: 10 evaluation episodes by default (the rule for short episodes)
+    assert jobs["pets"].eval_episodes == 10
+    args = {"algo": "poplin", "env": "Pendulum-v1", "seed": 0, "n_timesteps": 400, "eval_freq": 40, "eval_episodes": 10}
+    args |= {"conf_file": jobs["pets"].conf_file, "hyperparams": {"policy": "pets", "horizon": 5}}
+    assert jobs["pets"].matches(args) and not jobs["poplin-a"].matches(args)
+    assert not jobs["pets"].matches(args | {"hyperparams": {"policy": "pets", "horizon": 5, "seed": 1}})  # one more setting
+    # rl-zoo3 adds use_sde to a policy_kwargs dict it was given: still the run of that job, unless a value differs
+    kwargs = {**args, "hyperparams": {"policy_kwargs": {"net_arch": [16, 16], "use_sde": False}}}
+    sac = compare_module.Job("sac", "Pendulum-v1", 0, 400, 40, 10, None, ["policy_kwargs:dict(net_arch=[16, 16])"], "", "")
+    assert sac.matches(kwargs | {"algo": "sac", "conf_file": None})
+    other = {**kwargs, "algo": "sac", "conf_file": None, "hyperparams": {"policy_kwargs": {"net_arch": [8], "use_sde": False}}}
+    assert not sac.matches(other)
+    # a run committed from another checkout (its args.yml names that checkout's packaged file) is the same run
+    moved = str(
+        Path("/elsewhere/checkout") / Path(jobs["pets"].conf_file).relative_to(Path(jobs["pets"].conf_file).parents[2])
+    )
+    assert jobs["pets"].matches(args | {"conf_file": moved})
+    assert not jobs["pets"].matches(args | {"conf_file": "/elsewhere/checkout/sb3_poplin/hyperparams/other.yml"})
+
+
+def write_fake_run(job, run_dir: Path, eval_returns: list[float], train_returns: list[float], episode: int) -> None:
+    """A run folder as the zoo and compare.py leave it (no model zip): args, config, evaluations, monitor, marker."""
+    folder = run_dir / job.env
+    folder.mkdir(parents=True)
+    hyperparams = {key.split(":", 1)[0]: compare_module.parse_value(key.split(":", 1)[1]) for key in job.params}
+    args = {"algo": job.zoo_algo, "env": job.env, "seed": job.seed, "n_timesteps": job.n_timesteps}
+    args |= {"eval_freq": job.eval_freq, "eval_episodes": job.eval_episodes, "conf_file": job.conf_file}
+    (folder / "args.yml").write_text(yaml.dump({**args, "hyperparams": hyperparams}))
+    (folder / "config.yml").write_text(yaml.dump(hyperparams))
+    steps = job.eval_freq * np.arange(1, len(eval_returns) + 1)
+    results = np.repeat(np.asarray(eval_returns)[:, None], 2, axis=1)  # two evaluation episodes, same return
+    np.savez(run_dir / "evaluations.npz", timesteps=steps, results=results)
+    lines = ["#" + json.dumps({"t_start": 0, "env_id": job.env}), "r,l,t"]
+    lines += [f"{ret},{episode},{k + 1.0}" for k, ret in enumerate(train_returns)]
+    (run_dir / "0.monitor.csv").write_text("\n".join(lines) + "\n")
+    (run_dir / compare_module.COMPLETE_FILE).write_text("{}")
+
+
+def test_compare_reports_the_paper_protocol_and_steps_to_reach(tmp_path: Path) -> None:
+    """SAC trains 3x as long; the tables' numbers equal a hand computation from the fake runs' files."""
+    common = ["--algos", "pets", "sac", "--envs", "Pendulum-v1", "--seeds", "0", "1", "-n", "3000", "--n-evals", "3"]
+    options = compare_module.parse_args([*common, "--steps-scale", "sac:3", "--log-folder", str(tmp_path)])
+    jobs = compare_module.plan_jobs(options)
+    assert {(job.algo, job.n_timesteps, job.eval_freq) for job in jobs} == {("pets", 3000, 1000), ("sac", 9000, 1000)}
+    # the warm-up rule looks at the matched budget: the zoo's 10000 warm-up steps on HalfCheetah are cut to a tenth of
+    # 10000 for the matched run and for the one trained 3 x as long alike (its first 10000 steps are the matched run's);
+    # a matched budget of more than 20000 keeps them
+    cheetah = ["--algos", "sac", "td3", "--envs", "HalfCheetah-v5", "--seeds", "0"]
+    cheetah_jobs = compare_module.plan_jobs(compare_module.parse_args([*cheetah, "-n", "10000", "--steps-scale", "sac:3"]))
+    assert {job.algo: (job.n_timesteps, job.params) for job in cheetah_jobs} == {
+        "sac": (30000, ["learning_starts:1000"]),
+        "td3": (10000, ["learning_starts:1000"]),
+    }
+    long_jobs = compare_module.plan_jobs(compare_module.parse_args([*cheetah, "-n", "30000", "--steps-scale", "sac:3"]))
+    assert {job.algo: (job.n_timesteps, job.params) for job in long_jobs} == {"sac": (90000, []), "td3": (30000, [])}
+    evaluations = {
+        ("pets", 0): [-100, -50, 10],
+        ("pets", 1): [-90, -30, 30],  # final mean 20
+        ("sac", 0): [-200, -150, -100, -50, 0, 25, 30, 40, 50],  # reaches 20 at 6000
+        ("sac", 1): [-200, -180, -160, -140, -120, -100, 25, 30, 40],  # at 7000; the mean curve at 7000 (27.5)
+    }
+    training = {
+        ("pets", 0): [-300, -200, -100],  # the last 3000 steps: -200
+        ("pets", 1): [-250, -150, -40],  # -146.67; target -173.33
+        ("sac", 0): [-400 + 50 * k for k in range(1, 10)],  # window means -400 + 50 (k - 1): -150 at 6000
+        ("sac", 1): [-400 + 40 * k for k in range(1, 10)],  # -400 + 40 (k - 1): -160 at 7000; mean -130 at 7000
+    }
+    results = []
+    for job in jobs:
+        run_dir = tmp_path / job.zoo_algo / f"Pendulum-v1_{job.seed + 1}_{job.algo}"
+        write_fake_run(job, run_dir, evaluations[job.algo, job.seed], training[job.algo, job.seed], 1000)
+        found = compare_module.find_run(job)  # complete without a model zip: the marker
+        assert found == str(run_dir.relative_to(tmp_path))
+        results.append(compare_module.JobResult(job, 0, found, reused=True))
+    table = compare_module.write_report(results, options.envs, "cpu", tmp_path / "report", reference="PETS (MPC)")
+    task = json.loads((tmp_path / "report" / "results.json").read_text())["tasks"][0]
+    assert task["matched_step"] == 3000 and task["labels"]["SAC"]["final"] == [-100, -160]
+    paper = task["paper_protocol"]
+    assert paper["step"] == 3000 and paper["window"] == 3000
+    assert paper["labels"]["PETS"]["values"] == pytest.approx([-200, -440 / 3])
+    assert paper["labels"]["SAC"]["values"] == pytest.approx([-300, -320])
+    reach = task["reach"]
+    assert reach["target"] == pytest.approx(20) and reach["paper_target"] == pytest.approx(-520 / 3)
+    assert reach["evaluation"]["SAC"] == {"step": 7000, "per_seed": {"0": 6000, "1": 7000}, "last_step": 9000}
+    assert reach["evaluation"]["PETS (MPC)"]["step"] == 3000
+    assert reach["paper_protocol"]["SAC"] == {"step": 7000, "per_seed": {"0": 6000, "1": 7000}, "last_step": 9000}
+    assert reach["paper_protocol"]["PETS"]["step"] == 3000
+    text = table.read_text()
+    assert "| Pendulum-v1 | 3000 | -173.3 ± 26.7 (2 seeds) | -310.0 ± 10.0 (2 seeds) |" in text
+    assert "| Pendulum-v1 | SAC | 20.0 (PETS (MPC)) | 7000 (s0: 6000, s1: 7000) | -173.3 | 7000 (s0: 6000, s1: 7000) |" in text
+    # a run folder without the marker and without the model zip is an unfinished run
+    for path in tmp_path.glob(f"*/*/{compare_module.COMPLETE_FILE}"):
+        path.unlink()
+    assert compare_module.find_run(jobs[0]) is None
+    with pytest.raises(SystemExit, match=r"--steps-scale takes ALGO:FACTOR .* got 'td3:3'"):
+        compare_module.plan_jobs(compare_module.parse_args([*common, "--steps-scale", "td3:3"]))
+    with pytest.raises(SystemExit, match=r"got 'sac:three'"):
+        compare_module.plan_jobs(compare_module.parse_args([*common, "--steps-scale", "sac:three"]))
+
+
+def test_compare_plans_and_reports_the_paper_suite(tmp_path: Path) -> None:
+    from sb3_poplin.tasks.paper_suite import PAPER_TASKS
+
+    common = ["--algos", "poplin", "sac", "--seeds", "0", "-n", "400", "--log-folder", str(tmp_path)]
+    options = compare_module.parse_args(["--suite", "paper", *common])
+    jobs = compare_module.plan_jobs(options)
+    assert options.envs == [task.env_id for task in PAPER_TASKS.values()]
+    assert [job.env for job in jobs[::2]] == options.envs and {job.algo for job in jobs} == {"poplin", "sac"}
+    assert options.paper_names["sb3_poplin/MBBLCartpole-v0"] == "Cartpole"
+    # a report of runs that do not exist: every cell is a failure, the columns are the paper's names in its order
+    results = [compare_module.JobResult(job, 1) for job in jobs]
+    table = compare_module.write_report(results, options.envs, "cpu", tmp_path / "report", options.paper_names)
+    lines = table.read_text().splitlines()
+    header = next(line for line in lines if line.startswith("| |"))
+    assert header == "| | " + " | ".join(PAPER_TASKS) + " |"
+    assert any(line.startswith("| POPLIN-P | failed (1/1) |") for line in lines)
+    assert any(line.startswith("| SAC | failed (1/1) |") for line in lines)
+    assert "| env id | `sb3_poplin/PETSCheetah-v0` | `sb3_poplin/AntNoTerm-v0` |" in table.read_text()
+    # --envs picks among the paper's tasks by name or id, in the paper's order
+    options = compare_module.parse_args(["--suite", "paper", "--envs", "Cartpole", "sb3_poplin/PETSPusher-v0", *common])
+    compare_module.plan_jobs(options)
+    assert options.paper_names == {"sb3_poplin/PETSPusher-v0": "Pusher", "sb3_poplin/MBBLCartpole-v0": "Cartpole"}
+    with pytest.raises(SystemExit, match=r"\['Pendulum-v1'\] are not paper tasks"):
+        compare_module.plan_jobs(compare_module.parse_args(["--suite", "paper", "--envs", "Pendulum-v1", *common]))
+
+
+@pytest.mark.slow
+def test_compare_runs_the_paper_suite(tmp_path: Path) -> None:
+    from sb3_poplin.tasks.paper_suite import PAPER_TASKS
+
+    params = [f"poplin:{setting}" for setting in TINY_POPLIN]
+    args = ["--suite", "paper", "--algos", "poplin", "sac", "--seeds", "0", "-n", "400", "--n-evals", "1"]
+    args += ["--eval-episodes", "2", "--log-folder", str(tmp_path / "logs"), "--output", str(tmp_path / "report")]
+    run([sys.executable, "-m", "sb3_poplin.zoo", "compare", *args, "--params", *params], tmp_path, timeout=3600)
+    table = (tmp_path / "report" / "results.md").read_text()
+    assert "| | " + " | ".join(PAPER_TASKS) + " |" in table and "failed" not in table
+    assert "| SAC |" in table and "| POPLIN-P (MPC) |" in table
+    results = json.loads((tmp_path / "report" / "results.json").read_text())
+    assert results["suite"] == "paper" and [task["name"] for task in results["tasks"]] == list(PAPER_TASKS)
+
+
+def test_evaluation_episodes_follow_the_short_episode_rule(capsys: pytest.CaptureFixture[str]) -> None:
+    assert compare_module.evaluation_episodes("Pendulum-v1", None, "cpu") == 10  # 200-step episodes
+    assert compare_module.evaluation_episodes("HalfCheetah-v5", None, "cpu") == 3  # 1000-step episodes
+    assert compare_module.evaluation_episodes("HalfCheetah-v5", None, "paper") == 5
+    assert capsys.readouterr().out == ""
+    assert compare_module.evaluation_episodes("Pendulum-v1", 2, "cpu") == 2  # given: kept, with a warning
+    assert "use --eval-episodes 10 or more" in capsys.readouterr().out
+    assert compare_module.evaluation_episodes("HalfCheetah-v5", 2, "cpu") == 2
+    assert capsys.readouterr().out == ""
+
+
+# ------------------------------------------------------------------------------------------------ killed and resumed
+RESUME_PARAMS = {
+    "poplin-p": [f"poplin-p:{setting}" for setting in TINY_POPLIN if not setting.startswith("cem_iterations")],
+    "sac": ["sac:learning_starts:100", "sac:buffer_size:1000", "sac:policy_kwargs:dict(net_arch=[16, 16])"],
+}
+
+
+def resume_command(folder: Path, algo: str) -> list[str]:
+    """A tiny comparison of one run (3 episodes of Pendulum-v1, an evaluation after each), logs in ``folder``."""
+    args = ["--algos", algo, "--envs", "Pendulum-v1", "--seeds", "0", "-n", "600", "--eval-freq", "200"]
+    args += ["--eval-episodes", "2", "--jobs", "1", "--log-folder", str(folder / "logs"), "--output", str(folder / "report")]
+    return [sys.executable, "-m", "sb3_poplin.zoo", "compare", *args, "--params", *RESUME_PARAMS[algo]]
+
+
+def run_folders(folder: Path, algo: str) -> list[Path]:
+    return sorted((folder / "logs" / ("sac" if algo == "sac" else "poplin")).glob("Pendulum-v1_*"))
+
+
+def kill_when(folder: Path, algo: str, ready: str, delay: float) -> None:
+    """
+    Start the comparison, wait for ``ready`` (``"started"``: the run has written its settings, ``args.yml``;
+    ``"checkpoint"``: its first checkpoint exists), ``delay`` seconds more, then ``kill -9`` the comparison (only
+    its process: its run must die with it).
+    """
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    process = subprocess.Popen(resume_command(folder, algo), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and process.poll() is None:
+        runs = run_folders(folder, algo)
+        if runs and (
+            resume.latest_checkpoint(runs[0]) if ready == "checkpoint" else (runs[0] / "Pendulum-v1" / "args.yml").is_file()
+        ):
+            break
+        time.sleep(0.02)
+    time.sleep(delay)
+    assert process.poll() is None, "the run finished before it could be killed"
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    (run_dir,) = run_folders(folder, algo)
+    assert not (run_dir / compare_module.COMPLETE_FILE).exists() and not (run_dir / "Pendulum-v1.zip").exists()
+    # the run's own process died with the comparison: its folder's lock is free at once
+    deadline = time.monotonic() + 10
+    while True:
+        with open(run_dir / resume.LOCK_FILE, "a+") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except OSError:
+                assert time.monotonic() < deadline, "the killed comparison left its run training"
+        time.sleep(0.1)
+
+
+def run_files(run_dir: Path) -> dict[str, object]:
+    """What a finished run recorded: evaluations (both control modes), training episodes (no wall times), networks."""
+    files: dict[str, object] = {}
+    for path in sorted(run_dir.glob("evaluations*.npz")):
+        with np.load(path) as data:
+            files |= {f"{path.name}:{key}": data[key].tolist() for key in data.files}
+    rows = (run_dir / "0.monitor.csv").read_text().splitlines()
+    files["monitor"] = [row.rsplit(",", 1)[0] for row in rows[1:]]  # r, l (t is wall time)
+    with zipfile.ZipFile(run_dir / "Pendulum-v1.zip") as archive:
+        for member in sorted(name for name in archive.namelist() if name.endswith(".pth")):  # networks, optimizers
+            state = th.load(io.BytesIO(archive.read(member)), weights_only=False)
+            files[member] = {key: value.tolist() for key, value in flat_tensors(state).items()}
+    return files
+
+
+def flat_tensors(state: object, prefix: str = "") -> dict[str, th.Tensor]:
+    if isinstance(state, th.Tensor):
+        return {prefix: state}
+    items = state.items() if isinstance(state, dict) else enumerate(state) if isinstance(state, (list, tuple)) else []
+    found: dict[str, th.Tensor] = {}
+    for key, value in items:
+        found |= flat_tensors(value, f"{prefix}/{key}")
+    return found
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], dict[str, object]]:
+    """The files of an uninterrupted run of an algorithm (made once per module)."""
+    made: dict[str, dict[str, object]] = {}
+
+    def files_of(algo: str) -> dict[str, object]:
+        if algo not in made:
+            folder = tmp_path_factory.mktemp(f"uninterrupted-{algo}")
+            run(resume_command(folder, algo), folder, timeout=600)
+            (run_dir,) = run_folders(folder, algo)
+            assert not (run_dir / resume.CHECKPOINT_FOLDER).exists()  # a finished run drops its checkpoints
+            made[algo] = run_files(run_dir)
+            assert len(made[algo]["monitor"]) == 1 + 3 and len(made[algo]["evaluations.npz:timesteps"]) == 3
+        return made[algo]
+
+    return files_of
+
+
+@pytest.mark.parametrize(
+    ("algo", "ready", "delay"), [("poplin-p", "checkpoint", 0.4), ("poplin-p", "started", 0.0), ("sac", "checkpoint", 0.3)]
+)
+def test_a_killed_run_resumes_to_the_files_of_an_uninterrupted_one(
+    uninterrupted: Callable[[str], dict[str, object]], tmp_path: Path, algo: str, ready: str, delay: float
+) -> None:
+    """
+    ``kill -9`` in the second episode (after the first checkpoint), or before any checkpoint; the same command then
+    continues the run in its folder and finishes it with exactly the uninterrupted run's evaluations, training
+    episodes, networks and optimizers: nothing recorded twice, nothing lost. POPLIN-P (planner, distiller) and SAC.
+    """
+    kill_when(tmp_path, algo, ready, delay)
+    (run_dir,) = run_folders(tmp_path, algo)
+    checkpoint = resume.latest_checkpoint(run_dir)
+    assert (checkpoint is not None) == (ready == "checkpoint")
+    process = run(resume_command(tmp_path, algo), tmp_path, timeout=600)
+    assert f"[resumed] {algo}_Pendulum-v1_seed0" in process.stdout
+    assert run_folders(tmp_path, algo) == [run_dir]  # continued in place, no second folder
+    log = (tmp_path / "logs" / "compare_logs" / f"{algo}_Pendulum-v1_seed0.log").read_text()
+    if checkpoint is not None:
+        assert f"from {checkpoint.name}" in log
+    else:
+        assert "it has no checkpoint" in log
+    assert run_files(run_dir) == uninterrupted(algo)
+    assert not (run_dir / resume.CHECKPOINT_FOLDER).exists()
+
+
+def test_checkpoints_are_refused_with_the_reason_where_runs_cannot_continue_exactly() -> None:
+    from stable_baselines3 import PPO, SAC
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    env = make_vec_env("Pendulum-v1", n_envs=1)
+    assert resume.unsupported_reason(SAC("MlpPolicy", env, buffer_size=10), env) is None
+    assert "on-policy" in str(resume.unsupported_reason(PPO("MlpPolicy", env, n_steps=64), env))
+    two = make_vec_env("Pendulum-v1", n_envs=2)
+    assert "2 envs" in str(resume.unsupported_reason(SAC("MlpPolicy", two, buffer_size=10), two))
+    normalized = VecNormalize(env)
+    assert "VecNormalize" in str(resume.unsupported_reason(SAC("MlpPolicy", normalized, buffer_size=10), normalized))
+
+
+def test_a_run_folder_in_use_is_refused(tmp_path: Path) -> None:
+    held = resume.RunLock(tmp_path)
+    held.acquire()
+    with pytest.raises(RuntimeError, match=f"in use by another training process \\(pid {os.getpid()}\\)"):
+        resume.RunLock(tmp_path).acquire()
+    held.release()
+    again = resume.RunLock(tmp_path)
+    again.acquire()
+    again.release()
+    assert not (tmp_path / resume.LOCK_FILE).exists()
