@@ -281,19 +281,22 @@ class PoplinExperimentManager(ExperimentManager):
         if reason is not None:
             print(f"warning: no checkpoints for this run ({reason}); an interrupted run starts again from zero")
             self.checkpointing = False
-            return result
-        checkpoint = resume.latest_checkpoint(self.save_path) if self.resume_dir is not None else None
+        checkpoint = resume.latest_checkpoint(self.save_path) if self.resume_dir is not None and reason is None else None
         if checkpoint is not None:
             model = resume.restore_checkpoint(checkpoint, type(model), env, self.callbacks, device=model.device)
             print(f"Resumed {self.save_path} from {checkpoint.name} ({model.num_timesteps} of {self.n_timesteps} steps)")
         elif self.resume_dir is not None:
-            # killed before its first checkpoint: start again in the same folder, without what the killed run wrote
+            # no checkpoint to continue from: start again in the same folder, without what the killed run wrote
             for path in pathlib.Path(self.save_path).iterdir():
                 if path.is_file() and (path.name == "best_model.zip" or resume.RESULT_FILE_PATTERN.match(path.name)):
                     if not path.name.endswith(".monitor.csv"):  # the new Monitor has just started it again
                         path.unlink()
+            shutil.rmtree(os.path.join(self.save_path, resume.CHECKPOINT_FOLDER), ignore_errors=True)
             print(f"Starting {self.save_path} again: it has no checkpoint")
-        self.callbacks.append(resume.EpisodeCheckpointCallback(self.save_path, list(self.callbacks)))
+        if self.checkpointing:
+            # there from the start until training finishes: a run stopped early (Ctrl-C saves its model) is not complete
+            os.makedirs(os.path.join(self.save_path, resume.CHECKPOINT_FOLDER), exist_ok=True)
+            self.callbacks.append(resume.EpisodeCheckpointCallback(self.save_path, list(self.callbacks)))
         return model, saved_hyperparams
 
     def learn(self, model: Any) -> None:

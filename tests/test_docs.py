@@ -23,8 +23,8 @@ from sb3_poplin import POPLIN
 
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
-# written by other people; their links are checked once they exist, and a link to one of them is accepted meanwhile
-PENDING = ("CHANGELOG.md", "benchmarks/README.md")
+# the documentation beside README.md and docs/
+OTHER_PAGES = ("CHANGELOG.md", "benchmarks/README.md")
 MAX_README_LINES = 300
 SKIP_COMMENT = "# docs-test: skip"
 # env steps per env that a README example may train for
@@ -91,9 +91,8 @@ def links(path: Path) -> Iterator[tuple[int, str]]:
 
 
 def documentation_files() -> list[Path]:
-    """README.md, docs/*.md, and the pending files that exist."""
-    files = [README, *sorted((ROOT / "docs").glob("*.md"))]
-    return files + [ROOT / name for name in PENDING if (ROOT / name).is_file()]
+    """README.md, docs/*.md, the changelog and the benchmarks' index."""
+    return [README, *sorted((ROOT / "docs").glob("*.md")), *(ROOT / name for name in OTHER_PAGES)]
 
 
 def broken_links(path: Path, root: Path = ROOT) -> list[str]:
@@ -106,8 +105,7 @@ def broken_links(path: Path, root: Path = ROOT) -> list[str]:
         destination = (path.parent / file_part).resolve() if file_part else path.resolve()
         where = f"{path.relative_to(root)}:{number}: {target}"
         if not destination.exists():
-            if not any(destination == (root / name).resolve() for name in PENDING):
-                problems.append(f"{where}: {file_part} does not exist")
+            problems.append(f"{where}: {file_part} does not exist")
             continue
         if anchor and destination.suffix == ".md" and anchor not in anchors(destination):
             problems.append(f"{where}: no heading with anchor #{anchor} in {destination.relative_to(root.resolve())}")
@@ -145,12 +143,12 @@ def test_broken_link_is_found(tmp_path: Path) -> None:
     page = tmp_path / "page.md"
     page.write_text(
         "[ok](other.md#some-title) [ok](other.md#repeated-1) [ok](#here) [ok](https://example.org/x.md#nothing)\n"
-        "[ok, pending](CHANGELOG.md)\n## Here\n```bash\n[not a link](missing.md)\n```\n"
+        "## Here\n```bash\n[not a link](missing.md)\n```\n"
         "[bad](missing.md) [bad](other.md#nowhere) ![bad](img.png) `[code](missing.md)`\n[ref]: gone.md\n"
     )
     problems = broken_links(page, root=tmp_path)
     assert [problem.split(": ")[1] for problem in problems] == ["missing.md", "other.md#nowhere", "img.png", "gone.md"]
-    (tmp_path / "CHANGELOG.md").write_text("# Changelog\n")  # a pending file that exists is checked as any other
+    (tmp_path / "CHANGELOG.md").write_text("# Changelog\n")
     page.write_text("[ok](CHANGELOG.md#changelog) [bad](CHANGELOG.md#nowhere)\n")
     assert [problem.split(": ")[1] for problem in broken_links(page, root=tmp_path)] == ["CHANGELOG.md#nowhere"]
 
