@@ -304,8 +304,12 @@ def job_runs(job: Job) -> list[tuple[float, Path, bool]]:
         args_file = run / name / "args.yml"
         if not (run.name.startswith(f"{name}_") and args_file.is_file()):
             continue
-        with open(args_file) as file:
-            args = yaml.load(file, Loader=yaml.UnsafeLoader)  # written by the zoo (an OrderedDict)
+        try:
+            with open(args_file) as file:
+                args = yaml.load(file, Loader=yaml.UnsafeLoader)  # written by the zoo (an OrderedDict)
+        except yaml.YAMLError as error:
+            print(f"warning: {args_file} is unreadable ({type(error).__name__}); that run folder is ignored")
+            continue
         if isinstance(args, dict) and job.matches(dict(args)):
             found.append((run.stat().st_mtime, run, is_complete(run, name)))
     return found
@@ -357,6 +361,20 @@ def _die_with_parent() -> None:
         _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
+def mark_complete(job: Job, run_dir: str) -> None:
+    """
+    Write the completion marker into a finished run's folder (if it has none), so that its small files alone make it
+    complete (a committed run folder, whose zips git ignores).
+
+    :param job: the job
+    :param run_dir: its finished run (relative to the log folder)
+    """
+    path = Path(job.log_folder) / run_dir / COMPLETE_FILE
+    if not path.is_file():
+        marker = {"job": job.name, "command": job.command()[1:], "n_timesteps": job.n_timesteps}
+        path.write_text(json.dumps(marker, indent=1))
+
+
 def execute(job: Job, force: bool = False, collect_files: bool = False) -> JobResult:
     """
     Run one job (or reuse its complete run).
@@ -368,7 +386,9 @@ def execute(job: Job, force: bool = False, collect_files: bool = False) -> JobRe
     """
     run_dir = None if force else find_run(job)
     result = JobResult(job, 0, run_dir, reused=run_dir is not None)
-    if run_dir is None:
+    if run_dir is not None:
+        mark_complete(job, run_dir)  # a comparison killed after the run finished did not mark it
+    else:
         interrupted = None if force else find_interrupted(job)
         os.makedirs(os.path.join(job.log_folder, "compare_logs"), exist_ok=True)
         log_file = os.path.join(job.log_folder, "compare_logs", f"{job.name}.log")
@@ -385,9 +405,8 @@ def execute(job: Job, force: bool = False, collect_files: bool = False) -> JobRe
         result.resumed = interrupted
         result.run_dir = find_run(job) if process.returncode == 0 else None
         if result.run_dir is not None:
-            marker = {"job": job.name, "command": job.command()[1:], "n_timesteps": job.n_timesteps}
-            (Path(job.log_folder) / result.run_dir / COMPLETE_FILE).write_text(json.dumps(marker, indent=1))
-        if result.run_dir is None:
+            mark_complete(job, result.run_dir)
+        else:
             with open(log_file) as output:
                 result.output_tail = "".join(output.readlines()[-30:])
             result.returncode = result.returncode or 1
@@ -418,7 +437,9 @@ def run_local(jobs: list[Job], n_parallel: int, force: bool) -> list[JobResult]:
 def run_ray(jobs: list[Job], address: str, n_parallel: int, force: bool) -> list[JobResult]:
     """
     Run the jobs as Ray tasks of one CPU each; the files of runs made on other machines are written to the
-    local log folder.
+    local log folder. Complete runs in the local log folder are reused without a task. An interrupted run continues
+    from its checkpoint only where the node that runs it sees the run's folder (a shared file system); elsewhere it
+    starts again.
 
     :param jobs: the jobs
     :param address: ``"local"`` (start a Ray instance here), ``"auto"`` or a cluster address
@@ -437,8 +458,16 @@ def run_ray(jobs: list[Job], address: str, n_parallel: int, force: bool) -> list
     try:
         task = ray.remote(num_cpus=1)(execute)
         remote: Any = task.remote  # Ray's stubs type a remote function by its first signature only
-        submitted = {remote(job, force, True): index for index, job in enumerate(jobs)}
         results: dict[int, JobResult] = {}
+        submitted = {}
+        for index, job in enumerate(jobs):
+            local = None if force else find_run(job)
+            if local is not None:  # complete here: the nodes need not see this folder
+                results[index] = JobResult(job, 0, local, reused=True)
+                mark_complete(job, local)
+                report_progress(results[index])
+            else:
+                submitted[remote(job, force, True)] = index
         pending = list(submitted)
         while pending:
             done, pending = ray.wait(pending, num_returns=1)

@@ -45,6 +45,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper, VecNormalize
 
 CHECKPOINT_FOLDER = "checkpoints"
+CHECKPOINT_FILES = ("model.zip", "replay_buffer.npz", "state.pt")
 LOCK_FILE = "run.lock"
 # result files of a run folder restored to their checkpoint content (the Monitor's CSV, the evaluation files)
 RESULT_FILE_PATTERN = re.compile(r"(.*\.monitor\.csv|evaluations.*\.npz)$")
@@ -130,6 +131,10 @@ def unsupported_reason(model: BaseAlgorithm, env: VecEnv) -> str | None:
     """
     if not isinstance(model, OffPolicyAlgorithm):
         return f"{type(model).__name__} is on-policy: its rollouts end in the middle of episodes"
+    if type(model.replay_buffer) is not ReplayBuffer or model.replay_buffer.optimize_memory_usage:
+        return "its replay buffer is not a plain ReplayBuffer without optimize_memory_usage (HER, dict observations)"
+    if getattr(model, "use_sde", False):
+        return "gSDE draws its exploration noise before a checkpoint could be taken"
     if dummy_vec_env(env) is None:
         return "the training env is not a DummyVecEnv without VecNormalize"
     if env.num_envs != 1:
@@ -316,7 +321,7 @@ def checkpoint_folders(run_dir: str | pathlib.Path) -> list[pathlib.Path]:
     found = [
         (int(path.name.split("-", 1)[1]), path)
         for path in root.iterdir()
-        if re.fullmatch(r"step-\d+", path.name) and (path / "state.pt").is_file()
+        if re.fullmatch(r"step-\d+", path.name) and all((path / name).is_file() for name in CHECKPOINT_FILES)
     ]
     return [path for _, path in sorted(found)]
 
@@ -328,6 +333,22 @@ def latest_checkpoint(run_dir: str | pathlib.Path) -> pathlib.Path | None:
     """
     folders = checkpoint_folders(run_dir)
     return folders[-1] if folders else None
+
+
+def drop_checkpoints(run_dir: str | pathlib.Path) -> None:
+    """
+    Remove a finished run's checkpoints: the folder is first renamed (atomically), so that a run killed while they
+    are deleted is already seen as finished, never as a run with no checkpoint to start again.
+
+    :param run_dir: the run's folder
+    """
+    folder = pathlib.Path(run_dir) / CHECKPOINT_FOLDER
+    if not folder.exists():
+        return
+    finished = folder.with_name(f"{CHECKPOINT_FOLDER}.finished")
+    shutil.rmtree(finished, ignore_errors=True)
+    os.replace(folder, finished)
+    shutil.rmtree(finished, ignore_errors=True)
 
 
 def save_checkpoint(run_dir: str | pathlib.Path, model: BaseAlgorithm, callbacks: list[BaseCallback]) -> pathlib.Path:
@@ -454,8 +475,9 @@ def restore_result_files(run_dir: pathlib.Path, files: dict[str, bytes], env: Ve
 
 class EpisodeCheckpointCallback(BaseCallback):
     """
-    Save a checkpoint (:func:`save_checkpoint`) at the start of every rollout that follows an episode's end, i.e.
-    once the agent has learned from the episode and the env has been reset.
+    Save a checkpoint (:func:`save_checkpoint`) at the start of every rollout whose previous rollout ended with an
+    episode, i.e. once the agent has learned from the episode and the env has been reset (with ``train_freq`` in
+    steps, only the rollouts that end where an episode ends).
 
     :param run_dir: the run's folder
     :param callbacks: the run's other callbacks (their progress is saved too)
@@ -469,8 +491,8 @@ class EpisodeCheckpointCallback(BaseCallback):
         self._episode_ended = False
 
     def _on_step(self) -> bool:
-        if np.any(self.locals.get("dones", False)):
-            self._episode_ended = True
+        # the latest step only: a rollout of N steps may run past an episode's end into the next one
+        self._episode_ended = bool(np.all(self.locals.get("dones", False)))
         return True
 
     def _on_rollout_start(self) -> None:
@@ -516,8 +538,7 @@ class RunLock:
 
     def release(self) -> None:
         """Release the lock (also released by the OS when the process dies)."""
-        if self.file is not None:
-            self.path.unlink(missing_ok=True)
+        if self.file is not None:  # the file stays: removing it would let two processes lock two files of one name
             fcntl.flock(self.file, fcntl.LOCK_UN)
             self.file.close()
             self.file = None

@@ -200,7 +200,9 @@ class PoplinExperimentManager(ExperimentManager):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.checkpointing = self.checkpoints or self.resume_dir is not None
+        self.checkpoints_asked = self.checkpoints or self.resume_dir is not None
+        self.checkpointing = self.checkpoints_asked
+        self.restored = False
         self.training_finished = False
         self.lock: resume.RunLock | None = None
         if self.resume_dir is not None:
@@ -255,6 +257,13 @@ class PoplinExperimentManager(ExperimentManager):
             )
         )
 
+    def _save_config(self, saved_hyperparams: dict[str, Any]) -> None:
+        """rl-zoo3's ``config.yml`` and ``args.yml``; a resumed run keeps the files it has (they identify it)."""
+        if self.resume_dir is not None and os.path.isfile(os.path.join(self.params_path, "args.yml")):
+            print(f"Continuing with the settings of {self.params_path}")
+            return
+        super()._save_config(saved_hyperparams)
+
     def create_envs(self, n_envs: int, eval_env: bool = False, no_log: bool = False) -> Any:
         """rl-zoo3's envs; with checkpoints, the training env's resets are recorded (to replay them on resume)."""
         env = super().create_envs(n_envs, eval_env, no_log)
@@ -275,6 +284,9 @@ class PoplinExperimentManager(ExperimentManager):
         if result is None:
             return result
         model, saved_hyperparams = result
+        # there from the start until training finishes, also for a run without checkpoints: a run stopped early (Ctrl-C
+        # saves its model) is not complete
+        os.makedirs(os.path.join(self.save_path, resume.CHECKPOINT_FOLDER), exist_ok=True)
         env = model.get_env()
         assert env is not None
         reason = resume.unsupported_reason(model, env)
@@ -284,6 +296,7 @@ class PoplinExperimentManager(ExperimentManager):
         checkpoint = resume.latest_checkpoint(self.save_path) if self.resume_dir is not None and reason is None else None
         if checkpoint is not None:
             model = resume.restore_checkpoint(checkpoint, type(model), env, self.callbacks, device=model.device)
+            self.restored = True
             print(f"Resumed {self.save_path} from {checkpoint.name} ({model.num_timesteps} of {self.n_timesteps} steps)")
         elif self.resume_dir is not None:
             # no checkpoint to continue from: start again in the same folder, without what the killed run wrote
@@ -291,11 +304,10 @@ class PoplinExperimentManager(ExperimentManager):
                 if path.is_file() and (path.name == "best_model.zip" or resume.RESULT_FILE_PATTERN.match(path.name)):
                     if not path.name.endswith(".monitor.csv"):  # the new Monitor has just started it again
                         path.unlink()
-            shutil.rmtree(os.path.join(self.save_path, resume.CHECKPOINT_FOLDER), ignore_errors=True)
+            for stale in resume.checkpoint_folders(self.save_path):
+                shutil.rmtree(stale, ignore_errors=True)
             print(f"Starting {self.save_path} again: it has no checkpoint")
         if self.checkpointing:
-            # there from the start until training finishes: a run stopped early (Ctrl-C saves its model) is not complete
-            os.makedirs(os.path.join(self.save_path, resume.CHECKPOINT_FOLDER), exist_ok=True)
             self.callbacks.append(resume.EpisodeCheckpointCallback(self.save_path, list(self.callbacks)))
         return model, saved_hyperparams
 
@@ -303,6 +315,7 @@ class PoplinExperimentManager(ExperimentManager):
         """rl-zoo3's ``learn``; a resumed run trains the steps it has left."""
         if not self.checkpointing:
             super().learn(model)
+            self.training_finished = model.num_timesteps >= self.n_timesteps
             return
         kwargs: dict[str, Any] = {"callback": self.callbacks}
         if self.log_interval > -1:
@@ -310,9 +323,10 @@ class PoplinExperimentManager(ExperimentManager):
         elif self.log_interval < -1:
             kwargs["log_interval"] = None
         try:
-            if model.num_timesteps < self.n_timesteps:
-                resumed = model.num_timesteps > 0
-                model.learn(self.n_timesteps - model.num_timesteps, reset_num_timesteps=not resumed, **kwargs)
+            if not self.restored:
+                model.learn(self.n_timesteps, **kwargs)
+            elif model.num_timesteps < self.n_timesteps:
+                model.learn(self.n_timesteps - model.num_timesteps, reset_num_timesteps=False, **kwargs)
             self.training_finished = model.num_timesteps >= self.n_timesteps
         except KeyboardInterrupt:
             pass  # saved as rl-zoo3 does; the checkpoints stay, so the run can be resumed
@@ -324,8 +338,8 @@ class PoplinExperimentManager(ExperimentManager):
     def save_trained_model(self, model: Any) -> None:
         """rl-zoo3's save; a run that finished training then drops its checkpoints."""
         super().save_trained_model(model)
-        if self.checkpointing and self.training_finished:
-            shutil.rmtree(os.path.join(self.save_path, resume.CHECKPOINT_FOLDER), ignore_errors=True)
+        if self.checkpoints_asked and self.training_finished:
+            resume.drop_checkpoints(self.save_path)
         if self.lock is not None:
             self.lock.release()
 

@@ -370,6 +370,10 @@ def test_checkpoints_are_refused_with_the_reason_where_runs_cannot_continue_exac
     assert "2 envs" in str(resume.unsupported_reason(SAC("MlpPolicy", two, buffer_size=10), two))
     normalized = VecNormalize(env)
     assert "VecNormalize" in str(resume.unsupported_reason(SAC("MlpPolicy", normalized, buffer_size=10), normalized))
+    assert "gSDE" in str(resume.unsupported_reason(SAC("MlpPolicy", env, buffer_size=10, use_sde=True), env))
+    no_timeouts = {"handle_timeout_termination": False}
+    compact = SAC("MlpPolicy", env, buffer_size=10, optimize_memory_usage=True, replay_buffer_kwargs=no_timeouts)
+    assert "optimize_memory_usage" in str(resume.unsupported_reason(compact, env))
 
 
 def test_a_run_folder_in_use_is_refused(tmp_path: Path) -> None:
@@ -381,4 +385,3 @@ def test_a_run_folder_in_use_is_refused(tmp_path: Path) -> None:
     again = resume.RunLock(tmp_path)
     again.acquire()
     again.release()
-    assert not (tmp_path / resume.LOCK_FILE).exists()
