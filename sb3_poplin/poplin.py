@@ -81,10 +81,10 @@ class POPLIN(OffPolicyAlgorithm):
     :param distill_window: BC and GAN train on the most recent ``distill_window`` planned real steps (recorded
         when acting, so they stay valid targets as the policy changes); ``None``: only the steps since the last
         distillation, as in the original code; ``"auto"``: the variant's default (POPLIN-A 10 000, POPLIN-P
-        ``None``: chosen by the fidelity A/B, see the README). Avg always uses the steps since the last update.
+        ``None``: chosen by the fidelity A/B, see docs/results.md). Avg always uses the steps since the last update.
     :param avg_update: POPLIN-P Avg only: ``"overwrite"`` (``theta <- mean(omega)``, what the original code does:
         from the second update on the search runs around near-zero weights) or ``"add"`` (``theta <- theta +
-        avg_step_size * mean(omega)``). Overwrite by the fidelity A/B on Pendulum (4 seeds; see the README): the
+        avg_step_size * mean(omega)``). Overwrite by the fidelity A/B on Pendulum (4 seeds; see docs/results.md): the
         same MPC returns, better training returns and policy control than ``"add"`` with step 0.1
     :param avg_step_size: ``avg_update="add"`` only: the step, in (0, 1]. 1 is the paper's equation, which drives the
         clipped policy output into saturation within a few episodes (a policy stuck at full torque that the
@@ -93,7 +93,7 @@ class POPLIN(OffPolicyAlgorithm):
         bounds) or ``"planned"`` (the planner's first action before the clip; POPLIN-P: the network it planned
         with, perturbed by the executed perturbation: the original's BC-PR target). GAN's fake samples are clipped
         like the targets. ``None``: the variant's default, as the original code: POPLIN-A ``"executed"`` (BC-AI),
-        POPLIN-P ``"planned"`` (BC-PR; chosen by the fidelity A/B, see the README)
+        POPLIN-P ``"planned"`` (BC-PR; chosen by the fidelity A/B, see docs/results.md)
     :param whitening: what updating the policy's input whitening does to its first layer: ``"function"``
         (the first update only sets the statistics, so the normc network starts on whitened inputs; later updates
         re-express the layer so that the network's function is unchanged), ``"function_from_raw"`` (the first

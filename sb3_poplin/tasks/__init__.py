@@ -41,7 +41,7 @@ class TaskSpec:
     :param targ_proc: PETS's model-target hook, ``(obs, next_obs) -> target [..., t]``; ``None``: ``next_obs - obs``
     :param obs_postproc: its inverse, ``(obs, prediction) -> next_obs``; ``None``: ``obs + prediction``.
         ``obs_postproc(obs, targ_proc(obs, next_obs)) == next_obs`` must hold
-    :param description: one line for the README task table
+    :param description: one line for the task table (docs/tasks.md)
     """
 
     env_id: str
