@@ -346,7 +346,8 @@ def drop_checkpoints(run_dir: str | pathlib.Path) -> None:
     if not folder.exists():
         return
     finished = folder.with_name(f"{CHECKPOINT_FOLDER}.finished")
-    shutil.rmtree(finished, ignore_errors=True)
+    if finished.exists():  # left by a run killed while deleting
+        shutil.rmtree(finished, ignore_errors=True)
     os.replace(folder, finished)
     shutil.rmtree(finished, ignore_errors=True)
 

@@ -344,6 +344,8 @@ def test_a_killed_run_resumes_to_the_files_of_an_uninterrupted_one(
     """
     kill_when(tmp_path, algo, ready, delay)
     (run_dir,) = run_folders(tmp_path, algo)
+    settings = run_dir / "Pendulum-v1" / "args.yml"
+    written = settings.stat().st_mtime_ns
     checkpoint = resume.latest_checkpoint(run_dir)
     assert (checkpoint is not None) == (ready == "checkpoint")
     process = run(resume_command(tmp_path, algo), tmp_path, timeout=600)
@@ -356,6 +358,65 @@ def test_a_killed_run_resumes_to_the_files_of_an_uninterrupted_one(
         assert "it has no checkpoint" in log
     assert run_files(run_dir) == uninterrupted(algo)
     assert not (run_dir / resume.CHECKPOINT_FOLDER).exists()
+    assert settings.stat().st_mtime_ns == written  # the run's identity is never rewritten (a kill could truncate it)
+
+
+def test_a_checkpoint_counts_only_once_complete_and_a_finished_run_stays_finished(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    step = tmp_path / resume.CHECKPOINT_FOLDER / "step-200"
+    step.mkdir(parents=True)
+    (step / "state.pt").write_bytes(b"")
+    assert resume.latest_checkpoint(tmp_path) is None  # killed while its files were written or deleted
+    for name in ("model.zip", "replay_buffer.npz"):
+        (step / name).write_bytes(b"")
+    (tmp_path / resume.CHECKPOINT_FOLDER / "step-400.tmp").mkdir()
+    assert resume.latest_checkpoint(tmp_path) == step
+    (tmp_path / "Pendulum-v1.zip").write_bytes(b"")
+    np.savez(tmp_path / "evaluations.npz", timesteps=[200])
+    assert not compare_module.is_complete(tmp_path, "Pendulum-v1")  # model saved, checkpoints still there
+
+    def killed(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("killed while deleting the checkpoints")
+
+    monkeypatch.setattr(resume.shutil, "rmtree", killed)
+    with pytest.raises(RuntimeError, match="killed"):
+        resume.drop_checkpoints(tmp_path)
+    assert compare_module.is_complete(tmp_path, "Pendulum-v1")  # finished, whatever was left of the checkpoints
+    monkeypatch.undo()
+    resume.drop_checkpoints(tmp_path)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["Pendulum-v1.zip", "checkpoints.finished", "evaluations.npz"]
+
+
+def test_checkpoints_follow_episodes_that_end_a_rollout(tmp_path: Path) -> None:
+    callback = resume.EpisodeCheckpointCallback(tmp_path, [])
+    for dones, ended in [([False], False), ([True], True), ([False], False), ([True], True)]:
+        callback.locals = {"dones": np.array(dones)}
+        callback._on_step()
+        assert callback._episode_ended is ended  # a rollout that ran past an episode's end is mid-episode
+    callback.locals = {"dones": np.array([False])}
+    callback._on_step()
+    callback._on_rollout_start()  # mid-episode: nothing saved (no model to save would raise)
+    assert not (tmp_path / resume.CHECKPOINT_FOLDER).exists()
+
+
+def test_a_finished_run_is_marked_when_reused_and_unreadable_settings_are_skipped(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    options = compare_module.parse_args(["--algos", "pets", "--envs", "Pendulum-v1", "--seeds", "0", "-n", "400"])
+    options.log_folder = str(tmp_path)
+    (job,) = compare_module.plan_jobs(options)
+    run_dir = tmp_path / "poplin" / "Pendulum-v1_1_done"
+    write_fake_run(job, run_dir, [-500.0], [-900.0, -700.0], 200)
+    (run_dir / compare_module.COMPLETE_FILE).unlink()  # finished (its model saved), the comparison killed before marking
+    (run_dir / "Pendulum-v1.zip").write_bytes(b"")
+    broken = tmp_path / "poplin" / "Pendulum-v1_2_broken" / "Pendulum-v1"
+    broken.mkdir(parents=True)
+    (broken / "args.yml").write_text("algo: [poplin\n")  # cut by a kill
+    result = compare_module.execute(job)
+    assert result.reused and result.run_dir == "poplin/Pendulum-v1_1_done"
+    assert json.loads((run_dir / compare_module.COMPLETE_FILE).read_text())["job"] == job.name
+    assert "Pendulum-v1_2_broken/Pendulum-v1/args.yml is unreadable" in capsys.readouterr().out
 
 
 def test_checkpoints_are_refused_with_the_reason_where_runs_cannot_continue_exactly() -> None:
