@@ -312,28 +312,22 @@ class PoplinExperimentManager(ExperimentManager):
         return model, saved_hyperparams
 
     def learn(self, model: Any) -> None:
-        """rl-zoo3's ``learn``; a resumed run trains the steps it has left."""
-        if not self.checkpointing:
-            super().learn(model)
-            self.training_finished = model.num_timesteps >= self.n_timesteps
-            return
-        kwargs: dict[str, Any] = {"callback": self.callbacks}
-        if self.log_interval > -1:
-            kwargs["log_interval"] = self.log_interval
-        elif self.log_interval < -1:
-            kwargs["log_interval"] = None
-        try:
-            if not self.restored:
-                model.learn(self.n_timesteps, **kwargs)
-            elif model.num_timesteps < self.n_timesteps:
-                model.learn(self.n_timesteps - model.num_timesteps, reset_num_timesteps=False, **kwargs)
-            self.training_finished = model.num_timesteps >= self.n_timesteps
-        except KeyboardInterrupt:
-            pass  # saved as rl-zoo3 does; the checkpoints stay, so the run can be resumed
-        finally:
-            self.callbacks[0].on_training_end()
-            if model.env is not None:
-                model.env.close()
+        """rl-zoo3's ``learn``; a run continued from a checkpoint trains the steps it has left."""
+        if not self.restored:
+            super().learn(model)  # Ctrl-C: rl-zoo3 saves the model; the checkpoints stay, so the run can be resumed
+        else:
+            kwargs: dict[str, Any] = {"callback": self.callbacks}
+            if self.log_interval != -1:  # rl-zoo3's convention: -1 the default, below it no logging
+                kwargs["log_interval"] = self.log_interval if self.log_interval > -1 else None
+            try:
+                model.learn(max(self.n_timesteps - model.num_timesteps, 0), reset_num_timesteps=False, **kwargs)
+            except KeyboardInterrupt:
+                pass
+            finally:
+                self.callbacks[0].on_training_end()
+                if model.env is not None:
+                    model.env.close()
+        self.training_finished = model.num_timesteps >= self.n_timesteps
 
     def save_trained_model(self, model: Any) -> None:
         """rl-zoo3's save; a run that finished training then drops its checkpoints."""
