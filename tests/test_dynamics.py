@@ -1,12 +1,16 @@
 """The probabilistic ensemble: batched layers, propagation modes, fitting quality."""
 
+import copy
+import itertools
+from typing import Any
+
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
 
 from sb3_poplin import kernels
-from sb3_poplin.dynamics import EnsembleLinear, ProbabilisticEnsemble, default_weight_decays
+from sb3_poplin.dynamics import EnsembleLinear, ProbabilisticEnsemble, StepNoise, default_weight_decays
 
 
 def test_ensemble_linear_equals_a_loop_over_members():
@@ -166,28 +170,129 @@ class MemberAddsIndex(ProbabilisticEnsemble):
         return mean, th.full_like(mean, -80.0)
 
 
-def test_propagation_member_assignment():
-    e, p, n = 4, 8, 3
-    model = MemberAddsIndex(obs_dim=2, action_dim=1, ensemble_size=e, hidden_sizes=(4,))
-    states, actions = th.zeros(n, p, 2), th.zeros(n, p, 1)
+class MemberEchoesInput(ProbabilisticEnsemble):
+    """
+    Mock on 2-d observations: member m predicts the delta ``(m, s)`` and, with a learned reward, the reward ``100 m + s``,
+    where ``s`` is the first input of the row it is given (the raw observation's first coordinate: the normalisers are
+    the identity before any fit), without noise. A next state thus says which member it went through and whose input
+    it got.
+    """
+
+    def forward(self, x: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        e, b, _ = x.shape
+        member = th.arange(e, dtype=x.dtype).view(e, 1, 1).expand(e, b, 1)
+        own = x[..., :1]
+        mean = th.cat([member, own, 100 * member + own][: self.out_dim], dim=-1)
+        return mean, th.full_like(mean, -80.0)
+
+
+ECHO_E, ECHO_P, ECHO_N = 4, 8, 3  # members, particles per candidate, candidates
+
+
+def echo_model(learned_reward: bool) -> MemberEchoesInput:
+    return MemberEchoesInput(obs_dim=2, action_dim=1, ensemble_size=ECHO_E, hidden_sizes=(4,), learned_reward=learned_reward)
+
+
+def distinct_particles() -> tuple[th.Tensor, th.Tensor]:
+    """``[N, P, 2]`` states whose first coordinates are distinct multiples of 10 (in shuffled order), and zero actions."""
+    first = 10.0 * (1 + th.randperm(ECHO_N * ECHO_P, generator=th.Generator().manual_seed(5)))
+    states = th.stack([first, -first / 2], dim=-1).view(ECHO_N, ECHO_P, 2)
+    return states, th.zeros(ECHO_N, ECHO_P, 1)
+
+
+def members_used(states: th.Tensor, nxt: th.Tensor, reward: th.Tensor | None) -> th.Tensor:
+    """
+    The member each particle went through (``[N, P]``), after checking that its next state and its reward were
+    predicted from its own state (:class:`MemberEchoesInput`).
+    """
+    assert th.allclose(nxt[..., 1] - states[..., 1], states[..., 0], atol=1e-3)  # the echo of its own input
+    member = nxt[..., 0] - states[..., 0]
+    assert th.allclose(member, member.round(), atol=1e-3)
+    member = member.round()
+    assert ((member >= 0) & (member < ECHO_E)).all()
+    if reward is not None:
+        assert reward.shape == member.shape
+        assert th.allclose(reward, 100 * member + states[..., 0], atol=1e-3)
+    return member.long()
+
+
+def assigned_by_order(order: th.Tensor) -> th.Tensor:
+    """The documented rule of :class:`StepNoise`: particle ``order[c, j]`` of candidate c goes to member ``j // (P / E)``."""
+    expected = th.empty_like(order)
+    for c in range(order.shape[0]):
+        for j in range(order.shape[1]):
+            expected[c, order[c, j]] = j // (order.shape[1] // ECHO_E)
+    return expected
+
+
+@pytest.mark.parametrize("learned_reward", [False, True])
+def test_expectation_averages_the_members_of_each_candidate(learned_reward: bool):
+    model = echo_model(learned_reward)
+    states, actions = distinct_particles()
+    states, actions = states[:, :1], actions[:, :1]  # one particle per candidate
+    nxt, reward = model.propagate(states, actions, "expectation")
+    mean_member = (ECHO_E - 1) / 2
+    assert th.allclose(nxt[..., 0], states[..., 0] + mean_member)
+    assert th.allclose(nxt[..., 1], states[..., 1] + states[..., 0])
+    if learned_reward:
+        assert reward is not None and th.allclose(reward, 100 * mean_member + states[..., 0])
+    else:
+        assert reward is None
+
+
+@pytest.mark.parametrize("learned_reward", [False, True])
+def test_tsinf_keeps_every_particle_on_its_member_over_the_rollout(learned_reward: bool):
+    model = echo_model(learned_reward)
+    states, actions = distinct_particles()
     gen = th.Generator().manual_seed(0)
+    expected = (th.arange(ECHO_P) // (ECHO_P // ECHO_E)).expand(ECHO_N, ECHO_P)  # particle p: member p // (P / E)
+    for _ in range(3):
+        nxt, reward = model.propagate(states, actions, "tsinf", gen)
+        assert th.equal(members_used(states, nxt, reward), expected)
+        states = nxt
 
-    # expectation: one row per candidate through every member, mean of the members
-    nxt, _ = model.propagate(th.zeros(n, 1, 2), th.zeros(n, 1, 1), "expectation", gen)
-    assert th.allclose(nxt, th.full((n, 1, 2), (e - 1) / 2))
 
-    # tsinf: particle p always goes to member p // (P / E): spread evenly, fixed
-    nxt, _ = model.propagate(states, actions, "tsinf", gen)
-    expected = (th.arange(p) // (p // e)).float()
-    assert th.allclose(nxt[..., 0], expected.expand(n, p))
+@pytest.mark.parametrize("learned_reward", [False, True])
+def test_ts1_follows_the_drawn_order_and_redraws_it_every_step(learned_reward: bool):
+    model = echo_model(learned_reward)
+    states, actions = distinct_particles()
+    gen = th.Generator().manual_seed(0)
+    # given the order: each particle gets its own input's prediction from the member the order gives it
+    order = th.stack([th.randperm(ECHO_P, generator=gen) for _ in range(ECHO_N)])
+    assert not th.equal(order.argsort(dim=1), order)  # not its own inverse: a wrong un-shuffle would show
+    noise = StepNoise(order, th.randn(ECHO_N, ECHO_P, model.out_dim, generator=gen), None)
+    nxt, reward = model.propagate(states, actions, "ts1", noise=noise)
+    assert th.equal(members_used(states, nxt, reward), assigned_by_order(order))
+    # drawing its own order: P / E particles per member in every candidate, a different assignment at every step
+    assignments = []
+    for _ in range(3):
+        nxt, reward = model.propagate(states, actions, "ts1", gen)
+        members = members_used(states, nxt, reward)
+        counts = th.stack([(members == m).sum(dim=1) for m in range(ECHO_E)], dim=1)
+        assert th.equal(counts, th.full((ECHO_N, ECHO_E), ECHO_P // ECHO_E))
+        assignments.append(members)
+        states = nxt
+    assert not th.equal(assignments[0], assignments[1]) and not th.equal(assignments[1], assignments[2])
 
-    # ts1: a fresh random assignment per step, still P / E particles per member for every candidate
-    first, _ = model.propagate(states, actions, "ts1", gen)
-    second, _ = model.propagate(states, actions, "ts1", gen)
-    for out in (first, second):
-        counts = th.stack([(out[..., 0].round() == m).sum(dim=1) for m in range(e)], dim=1)
-        assert th.equal(counts, th.full((n, e), p // e))
-    assert not th.equal(first, second)
+
+@pytest.mark.parametrize("learned_reward", [False, True])
+def test_ds_resamples_each_particle_from_its_candidates_moments(learned_reward: bool):
+    """ds: ts1's predictions, then particle p of candidate c becomes ``mean_c + std_c * resample[c, p]`` (per dimension)."""
+    model = echo_model(learned_reward)
+    states, actions = distinct_particles()
+    gen = th.Generator().manual_seed(0)
+    order = th.stack([th.randperm(ECHO_P, generator=gen) for _ in range(ECHO_N)])
+    eps, resample = th.randn(2, ECHO_N, ECHO_P, model.out_dim, generator=gen)
+    nxt, reward = model.propagate(states, actions, "ds", noise=StepNoise(order, eps, resample))
+    # the mock's predictions under ts1's assignment, then their moments per candidate (population std)
+    member = assigned_by_order(order).float()
+    own = states[..., 0]
+    predicted = th.stack([member, own, 100 * member + own][: model.out_dim], dim=-1)
+    mean, std = predicted.mean(dim=1, keepdim=True), predicted.std(dim=1, keepdim=True, unbiased=False)
+    expected = mean + std * resample
+    assert th.allclose(nxt, states + expected[..., :2], atol=1e-3)
+    if learned_reward:
+        assert reward is not None and th.allclose(reward, expected[..., 2], atol=1e-3)
 
 
 def test_ds_resamples_from_the_particles_moments():
@@ -251,12 +356,109 @@ def test_learned_reward_head(standardise_targets: bool, epochs: int, bound: floa
     assert ((pred.squeeze(1) - rew[:500]) ** 2).mean() / rew[:500].var() < bound
 
 
-def test_holdout_early_stopping_restores_the_best_parameters():
-    th.manual_seed(0)
-    obs, act, nxt, _ = pendulum_transitions(300, seed=3)
-    model = ProbabilisticEnsemble(3, 1, ensemble_size=2, hidden_sizes=(32,))
-    optimizer = th.optim.Adam(model.parameters(), lr=1e-2)
+def noisy_transitions(n: int, noise: float) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+    """``n`` random transitions of a smooth 2-d system with one action, Gaussian noise on the next state (seeded)."""
     gen = th.Generator().manual_seed(0)
-    result = model.fit(obs, act, nxt, optimizer, epochs=200, holdout_ratio=0.3, patience=3, generator=gen)
-    assert result.epochs < 200  # stopped early
-    assert result.holdout_mse == pytest.approx(result.holdout_mse)  # finite, not nan
+    obs = th.randn(n, 2, generator=gen)
+    act = 2 * th.rand(n, 1, generator=gen) - 1
+    nxt = obs + 0.5 * th.sin(2 * obs) * act + noise * th.randn(n, 2, generator=gen)
+    return obs, act, nxt
+
+
+class FitRecorder:
+    """
+    Watches :meth:`ProbabilisticEnsemble.fit` (raw targets, all rows' targets distinct): the rows every member trains
+    on in each minibatch (the targets its loss gets), the rows of each error measurement, and the parameters after
+    each epoch.
+    """
+
+    def __init__(self, model: ProbabilisticEnsemble, targets: th.Tensor, monkeypatch: pytest.MonkeyPatch) -> None:
+        assert not model.standardise_targets  # the loss then gets the targets as they are
+        self.targets = targets
+        self.trained: list[th.Tensor] = []  # [E, batch] row indices per minibatch
+        self.measured: list[th.Tensor] = []  # row indices per prediction_mse call
+        self.states: list[dict[str, th.Tensor]] = []  # the state dict after each epoch
+        loss, epoch, measure = model._loss, model._epoch, model.prediction_mse
+
+        def recording_loss(x: th.Tensor, y: th.Tensor) -> th.Tensor:
+            self.trained.append(self.rows(y))
+            return loss(x, y)
+
+        def recording_epoch(*args: Any) -> float:
+            result = epoch(*args)
+            self.states.append(copy.deepcopy(model.state_dict()))
+            return result
+
+        def recording_measure(inputs: th.Tensor, targets: th.Tensor, batch: int = 4096) -> float:
+            self.measured.append(self.rows(targets))
+            return measure(inputs, targets, batch)
+
+        monkeypatch.setattr(model, "_loss", recording_loss)
+        monkeypatch.setattr(model, "_epoch", recording_epoch)
+        monkeypatch.setattr(model, "prediction_mse", recording_measure)
+
+    def rows(self, y: th.Tensor) -> th.Tensor:
+        """The row indices of targets ``y [..., out]``."""
+        distance = (y.detach().unsqueeze(-2) - self.targets).abs().amax(dim=-1)  # [..., n]
+        assert (distance.amin(dim=-1) < 1e-6).all()
+        return distance.argmin(dim=-1)
+
+
+def members_mse(model: ProbabilisticEnsemble, obs: th.Tensor, act: th.Tensor, nxt: th.Tensor) -> float:
+    """Squared error of each member's mean delta (plain forward), averaged over members, rows and dimensions."""
+    x = (th.cat([obs, act], dim=-1) - model.input_mean) / model.input_std
+    with th.no_grad():
+        mean, _ = model(x.expand(model.ensemble_size, -1, -1))
+    delta = mean * model.target_std + model.target_mean
+    return ((delta - (nxt - obs)) ** 2).mean().item()
+
+
+def test_holdout_early_stopping_restores_the_best_parameters(monkeypatch: pytest.MonkeyPatch):
+    obs, act, nxt = noisy_transitions(80, noise=0.1)
+    th.manual_seed(0)
+    model = ProbabilisticEnsemble(2, 1, ensemble_size=2, hidden_sizes=(32, 32))
+    record = FitRecorder(model, nxt - obs, monkeypatch)
+    optimizer = th.optim.Adam(model.parameters(), lr=3e-2)
+    gen = th.Generator().manual_seed(0)
+    result = model.fit(obs, act, nxt, optimizer, epochs=100, batch_size=8, holdout_ratio=0.3, patience=3, generator=gen)
+    hold = record.measured[0]
+    assert hold.unique().numel() == 24  # int(80 * 0.3) rows, never trained on
+    assert not th.isin(th.cat([rows.flatten() for rows in record.trained]), hold).any()
+    # the holdout error after every epoch, measured here on a copy with that epoch's parameters
+    probe = copy.deepcopy(model)
+    errors = []
+    for state in record.states:
+        probe.load_state_dict(state)
+        errors.append(members_mse(probe, obs[hold], act[hold], nxt[hold]))
+    best = int(np.argmin(errors))
+    assert len(errors) == result.epochs == best + 1 + 3 < 100  # stopped `patience` epochs after the best
+    assert errors[-1] > errors[best] and best > 0
+    for name, value in model.state_dict().items():  # the best epoch's parameters, not the last epoch's
+        assert th.equal(value, record.states[best][name]), name
+    assert result.holdout_mse == pytest.approx(members_mse(model, obs[hold], act[hold], nxt[hold]), rel=1e-5)
+    assert result.holdout_mse == pytest.approx(errors[best], rel=1e-5)
+
+
+def test_each_member_trains_on_its_own_bootstrap_sample_of_the_training_rows(monkeypatch: pytest.MonkeyPatch):
+    obs, act, nxt = noisy_transitions(40, noise=0.1)
+    th.manual_seed(0)
+    e, n_train, batches = 3, 30, 4  # 40 rows, 10 held out; minibatches of 8, 8, 8, 6
+    model = ProbabilisticEnsemble(2, 1, ensemble_size=e, hidden_sizes=(8,))
+    record = FitRecorder(model, nxt - obs, monkeypatch)
+    optimizer = th.optim.Adam(model.parameters(), lr=1e-3)
+    model.fit(obs, act, nxt, optimizer, epochs=2, batch_size=8, holdout_ratio=0.25, generator=th.Generator().manual_seed(0))
+    hold = record.measured[0]
+    train = th.tensor([i for i in range(40) if i not in hold.tolist()])
+    assert train.numel() == n_train
+    assert len(record.trained) == 2 * batches
+    first, second = (th.cat(record.trained[k * batches : (k + 1) * batches], dim=1) for k in range(2))  # [E, rows]
+    assert first.shape == second.shape == (e, n_train)  # as many rows as the training split, for every member
+    assert th.isin(th.cat([first, second]), train).all()  # training rows only
+    samples = [first[m].sort().values for m in range(e)]
+    for m in range(e):
+        assert first[m].unique().numel() < n_train  # drawn with replacement: some rows twice, others left out
+        assert th.equal(second[m].sort().values, samples[m])  # one sample per fit, reshuffled every epoch
+        assert not th.equal(second[m], first[m])
+    for a, b in itertools.combinations(samples, 2):
+        assert not th.equal(a, b)  # every member its own sample
+    assert th.cat(samples).unique().numel() > 0.8 * n_train  # together they cover the training split

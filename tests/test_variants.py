@@ -1,5 +1,7 @@
 """POPLIN-A and POPLIN-P: the policy network, the search spaces, distillation and control modes."""
 
+import itertools
+
 import numpy as np
 import pytest
 import torch as th
@@ -187,6 +189,50 @@ def test_behaviour_cloning_fits_a_target_policy():
     )
     after = th.nn.functional.mse_loss(policy(states), targets).item()
     assert after < 0.05 * before and stats["policy_holdout_loss"] < 0.01
+
+
+def test_behaviour_cloning_stops_when_the_holdout_loss_rises_and_keeps_the_best_checked_parameters():
+    gen = th.Generator().manual_seed(0)
+    states = th.randn(60, 3, generator=gen)
+    targets = th.tanh(states[:, :2]) + th.randn(60, 2, generator=gen)  # noisy targets: the net soon overfits
+    th.manual_seed(0)
+    policy = PolicyNetwork(3, 2, (32, 32))
+    policy.update_whitening(states)
+    # every holdout evaluation (the forward passes without gradients): its rows and the parameters it saw
+    evaluated: list[tuple[th.Tensor, dict[str, th.Tensor]]] = []
+
+    def record(module: th.nn.Module, args: tuple[th.Tensor]) -> None:
+        if not th.is_grad_enabled():
+            evaluated.append((args[0].clone(), {k: v.clone() for k, v in module.state_dict().items()}))
+
+    policy.register_forward_pre_hook(record)
+    optimizer = th.optim.Adam(policy.parameters(), lr=1e-2)
+    check_every = 2
+    stats = behaviour_cloning(
+        policy, optimizer, states, targets, epochs=50, batch_size=8, check_every=check_every, generator=gen
+    )
+    hold_states = evaluated[0][0]
+    assert hold_states.shape == (12, 3) and all(th.equal(rows, hold_states) for rows, _ in evaluated)  # 20 % of 60
+    hold = (hold_states.unsqueeze(1) == states).all(dim=-1).int().argmax(dim=1)
+    assert th.equal(states[hold], hold_states)
+
+    def holdout_loss(state: dict[str, th.Tensor]) -> float:  # mean squared error, computed here on a copy
+        probe = PolicyNetwork(3, 2, (32, 32))
+        probe.load_state_dict(state)
+        with th.no_grad():
+            return ((probe(states[hold]) - targets[hold]) ** 2).mean().item()
+
+    epochs = int(stats["policy_epochs"])
+    assert epochs < 50 and epochs % check_every == 0  # stopped at a check
+    # before training, then at every check: falling (or flat), then up at the last one
+    losses = [holdout_loss(state) for _, state in evaluated[: 1 + epochs // check_every]]
+    assert all(later <= earlier for earlier, later in itertools.pairwise(losses[:-1])) and losses[-1] > losses[-2]
+    assert len(losses) >= 3  # trained for at least one check before it got worse
+    best = evaluated[len(losses) - 2][1]
+    for name, value in policy.state_dict().items():  # the best checked parameters, not the last epoch's
+        assert th.equal(value, best[name]), name
+    assert stats["policy_holdout_loss"] == pytest.approx(losses[-2], rel=1e-5)
+    assert stats["policy_holdout_loss"] == pytest.approx(holdout_loss(policy.state_dict()), rel=1e-5)
 
 
 def test_gan_distillation_moves_the_policy_towards_the_planned_actions():
