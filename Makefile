@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 # torch first, pinned: the local CPU wheel. Installing the package first would let pip pull a CUDA build.
 TORCH_PIN ?= torch==2.13.0
 
-.PHONY: install demo test test-all lint type bench clean
+.PHONY: install demo test test-slow test-all lint type bench clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,9 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -m slow
 
 test-all: $(STAMP)
 	$(PY) -m pytest -m ""

@@ -1,16 +1,24 @@
 """Shared test set-up: one torch thread (fastest on these 2-core machines), the tiny agent settings, a factory."""
 
 import importlib.util
+import os
 import sys
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import torch as th
+from hypothesis import settings
 
 from sb3_poplin import POPLIN
 
 th.set_num_threads(1)
+
+# hypothesis: derandomised, so every run tries the same examples and a failure replays exactly (the examples derive
+# from the test itself); HYPOTHESIS_PROFILE=explore draws new ones each run and prints a failure's reproduce blob
+settings.register_profile("replayable", derandomize=True, print_blob=True)
+settings.register_profile("explore", derandomize=False, print_blob=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "replayable"))
 
 # the smallest planner and model that still plan and learn something: seconds per episode
 TINY: dict[str, Any] = dict(

@@ -40,6 +40,7 @@ def compare(tmp_path: Path, *extra: str) -> tuple[dict, str]:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(2 * 900 + 120)  # two compare calls, each up to its 900 s limit
 def test_compare_locally(tmp_path: Path) -> None:
     results, output = compare(tmp_path, "--seeds", "0", "1", "--jobs", "2")
     assert output.count("[done]") == 4
@@ -211,6 +212,7 @@ def test_compare_plans_and_reports_the_paper_suite(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(3600 + 120)  # the compare call's own limit
 def test_compare_runs_the_paper_suite(tmp_path: Path) -> None:
     from sb3_poplin.tasks.paper_suite import PAPER_TASKS
 
