@@ -7,6 +7,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import numpy as np
 import torch as th
 from hypothesis import settings
 
@@ -50,3 +51,14 @@ def load_benchmark(name: str) -> ModuleType:
     sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def pendulum_reward(obs: np.ndarray, torque: np.ndarray) -> np.ndarray:
+    """Pendulum-v1's reward by hand on pre-step observations ``[..., 3]``: -(theta^2 + 0.1 theta_dot^2 + 0.001 u^2)."""
+    theta = np.arctan2(obs[..., 1], obs[..., 0])
+    return -(theta**2 + 0.1 * obs[..., 2] ** 2 + 0.001 * np.clip(torque, -2.0, 2.0) ** 2)
+
+
+def sorted_rows(table: np.ndarray) -> np.ndarray:
+    """The rows of a table in lexicographic order: two tables compared as multisets of rows."""
+    return table[np.lexsort(table.T[::-1])]

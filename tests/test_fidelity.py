@@ -254,7 +254,66 @@ def test_obs_postproc_inverts_targ_proc_for_every_registered_task(task_id):
         obs.shape[1], 1, ensemble_size=1, hidden_sizes=(4,), input_exclude=hooks.pop("model_input_exclude"), **hooks
     )
     assert th.allclose(model.obs_postproc(obs, model.targ_proc(obs, nxt)), nxt, atol=1e-5)
-    assert model.obs_preproc(obs).shape == (16, model.feature_dim)
+    if spec.obs_preproc is None:  # the observation without the excluded indices (PETSCheetah's own: by hand below)
+        kept = [i for i in range(obs.shape[1]) if i not in spec.model_input_exclude]
+        assert th.equal(model.obs_preproc(obs), obs[:, kept])
+
+
+# the root positions the tasks hide from the networks (test_tasks checks that they are the qpos coordinates)
+EXCLUDED_INPUTS = {
+    "Ant-v5": (0, 1),
+    "HalfCheetah-v5": (0,),
+    "Hopper-v5": (0,),
+    "Swimmer-v5": (0, 1),
+    "Walker2d-v5": (0,),
+    "sb3_poplin/AntNoTerm-v0": (0, 1),
+    "sb3_poplin/HopperNoTerm-v0": (0,),
+    "sb3_poplin/Walker2dNoTerm-v0": (0,),
+}
+
+
+def test_the_tasks_that_hide_positions_are_the_listed_ones():
+    hiding = {task_id: make_task(task_id).model_input_exclude for task_id in registered_tasks()}
+    assert {task_id: excluded for task_id, excluded in hiding.items() if excluded} == EXCLUDED_INPUTS
+
+
+@pytest.mark.parametrize("task_id", sorted(EXCLUDED_INPUTS))
+def test_excluded_positions_are_hidden_from_the_networks_and_their_delta_is_predicted(task_id):
+    agent = tiny("poplin-a", task_id)
+    dynamics, actor = agent.policy.dynamics, agent.policy.actor
+    excluded = list(EXCLUDED_INPUTS[task_id])
+    env = make_env(task_id)
+    env.action_space.seed(0)
+    obs, _ = env.reset(seed=0)
+    transitions = []  # a few real (obs, scaled action, next obs)
+    for _ in range(16):
+        action = env.action_space.sample()
+        next_obs, *_ = env.step(action)
+        transitions.append((obs, agent.policy.scale_action(action), next_obs))
+        obs = next_obs
+    o, a, n = (th.as_tensor(np.stack(column), dtype=th.float32) for column in zip(*transitions, strict=True))
+    assert (n[:, excluded] != o[:, excluded]).any()  # the positions move
+    kept = [i for i in range(o.shape[1]) if i not in excluded]
+    moved = o.clone()
+    moved[:, excluded] += 100.0
+    # the model's input: the observation without the positions, then the action; the policy's: without them too
+    assert th.equal(dynamics.raw_input(o, a), th.cat([o[:, kept], a], dim=1))
+    assert th.equal(dynamics.raw_input(moved, a), dynamics.raw_input(o, a))
+    with th.no_grad():
+        assert th.equal(actor(moved), actor(o))
+    # the target: every coordinate's change, the positions' included
+    assert dynamics.out_dim == o.shape[1] and th.equal(dynamics.training_target(o, n), n - o)
+    dynamics.fit(o, a, n, agent.policy.dynamics_optimizer, epochs=1, generator=th.Generator().manual_seed(0))
+    with th.no_grad():
+        mean, _ = dynamics(dynamics.model_input(o, a).expand(dynamics.ensemble_size, -1, -1))
+        delta = mean.mean(dim=0) * dynamics.target_std + dynamics.target_mean  # the members' mean change, env units
+        predicted, _ = dynamics.propagate(o.unsqueeze(1), a.unsqueeze(1), "expectation")
+        from_moved, _ = dynamics.propagate(moved.unsqueeze(1), a.unsqueeze(1), "expectation")
+    assert (delta[:, excluded] != 0).all()
+    assert th.allclose(predicted[:, 0], o + delta, atol=1e-5)  # the positions move by their predicted delta
+    shift = th.zeros_like(o)
+    shift[:, excluded] = 100.0
+    assert th.allclose(from_moved[:, 0] - predicted[:, 0], shift, atol=1e-4)  # from wherever they are
 
 
 def test_pets_cheetah_model_sees_sin_cos_of_the_angle_and_not_the_velocity():

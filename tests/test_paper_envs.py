@@ -216,14 +216,24 @@ NEW_ENVS = [
 
 @pytest.mark.parametrize("variant", ["pets", "poplin-p"])
 @pytest.mark.parametrize("env_id", NEW_ENVS)
-def test_poplin_learns_on_the_paper_envs(env_id, variant):
+def test_poplin_runs_on_the_paper_envs_and_fits_on_every_step(env_id, variant):
+    """A smoke test (a planned episode, valid actions), not a learning test; and the last fit saw every transition."""
     from sb3_poplin import POPLIN
 
     tiny = dict(horizon=4, population_size=16, num_elites=4, cem_iterations=1, ensemble_size=2)
     model = POPLIN(variant, env_id, seed=0, dynamics_net_arch=(16, 16), model_epochs=1, **tiny)
     episode = model.env.envs[0].spec.max_episode_steps  # type: ignore[union-attr]
     model.learn(episode + 20)  # one random episode, a model fit, then a planned episode (train_freq: 1 episode)
-    assert model.num_timesteps == 2 * episode
+    assert model.num_timesteps == 2 * episode and model._n_updates == 2
+    # the model's input statistics were refit on all 2 * episode transitions (none of these tasks hides an input)
+    buffer = model.replay_buffer
+    columns = (buffer.observations[: 2 * episode, 0], buffer.actions[: 2 * episode, 0])
+    inputs = np.concatenate(columns, axis=1).astype(np.float64)
+    dynamics = model.policy.dynamics
+    np.testing.assert_allclose(dynamics.input_mean.numpy(), inputs.mean(axis=0), rtol=1e-4, atol=1e-5)
+    spread = inputs.std(axis=0)
+    constant = spread < 1e-9  # the Pusher's object height never changes: its std counts as 1
+    np.testing.assert_allclose(dynamics.input_std.numpy(), np.where(constant, 1.0, spread), rtol=1e-4, atol=1e-5)
     env = gym.make(env_id)
     obs, _ = env.reset(seed=1)
     action, _ = model.predict(obs, deterministic=True)

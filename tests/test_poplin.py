@@ -10,7 +10,7 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
-from conftest import TINY, tiny
+from conftest import TINY, sorted_rows, tiny
 
 from sb3_poplin import POPLIN
 
@@ -114,6 +114,47 @@ def test_random_warmup_then_planning_and_logger_keys(tmp_path):
     for key in ("train/model_loss", "train/model_mse", "plan/elite_return", "rollout/ep_rew_mean"):
         assert key in keys
     assert float(rows[-1]["train/n_transitions"]) == 600 - 200  # fitted before the last episode was collected
+
+
+class TransitionRecorder(gym.Wrapper):
+    """Every transition the env steps through, as one row: obs, action (env units), next obs."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self.rows: list[np.ndarray] = []
+        self.obs: np.ndarray | None = None
+
+    def reset(self, **kwargs):
+        self.obs, info = self.env.reset(**kwargs)
+        return self.obs, info
+
+    def step(self, action):
+        next_obs, reward, terminated, truncated, info = self.env.step(action)
+        self.rows.append(np.concatenate([self.obs, action, next_obs]))
+        self.obs = next_obs
+        return next_obs, reward, terminated, truncated, info
+
+
+def test_a_wrapped_replay_buffer_fits_on_its_newest_transitions_only():
+    recorder = TransitionRecorder(gym.make("Pendulum-v1"))
+    model = POPLIN("pets", recorder, seed=0, buffer_size=150, **TINY)  # wraps during the first 200-step episode
+    fits: list[np.ndarray] = []
+    dynamics = model.policy.dynamics
+    fit = dynamics.fit
+
+    def spy(obs, actions, next_obs, *args, **kwargs):
+        fits.append(th.cat([obs, actions, next_obs], dim=1).numpy().copy())
+        return fit(obs, actions, next_obs, *args, **kwargs)
+
+    dynamics.fit = spy
+    model.learn(400)  # fits after 200 steps (buffer position 50) and after 400 (position 100)
+    collected = np.array(recorder.rows)
+    assert len(fits) == 2 and len(collected) == 400
+    for fitted, steps in zip(fits, (200, 400), strict=True):
+        newest = collected[steps - 150 : steps].copy()
+        newest[:, 3] /= 2.0  # the buffer holds the actions scaled to [-1, 1] (Pendulum's torque bound is 2)
+        assert fitted.shape == (150, 7)  # no stale row, no duplicate: each newest transition once, obs to its next obs
+        np.testing.assert_allclose(sorted_rows(fitted), sorted_rows(newest), atol=1e-6)
 
 
 def test_progress_bar_and_verbose_output(capsys):

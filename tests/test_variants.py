@@ -1,5 +1,6 @@
 """POPLIN-A and POPLIN-P: the policy network, the search spaces, distillation and control modes."""
 
+import copy
 import itertools
 
 import numpy as np
@@ -7,13 +8,13 @@ import pytest
 import torch as th
 from torch.func import functional_call
 
-from conftest import TINY
+from conftest import TINY, pendulum_reward, sorted_rows
 
 from sb3_poplin import POPLIN
 from sb3_poplin.callbacks import ControlModesEvalCallback
 from sb3_poplin.distillation import average_perturbation, behaviour_cloning, gan_distillation, saturated_fraction
 from sb3_poplin.dynamics import ProbabilisticEnsemble
-from sb3_poplin.planning import MPCPlanner, PolicyActionNoise, PolicyParameterNoise
+from sb3_poplin.planning import MPCPlanner, PlanResult, PolicyActionNoise, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, PolicyNetwork
 from sb3_poplin.variants import NAMED_CONFIGURATIONS, POLICY_VARIANTS, configuration
 
@@ -63,15 +64,31 @@ def test_flat_parameters_and_add_to_parameters_share_one_layout():
     assert th.allclose(policy.forward_perturbed(obs, th.zeros(4, policy.num_params)), policy(obs), atol=1e-6)
 
 
-def test_whitening_update_keeps_the_function_and_floors_the_variance():
+def test_whitening_update_keeps_the_function():
     policy = whitened_policy()
     obs = th.randn(20, 3) * 5
     before = policy(obs)
-    policy.update_whitening(th.randn(200, 3) * 0.01 + 7.0)  # tiny variance: floored at 1e-2
+    policy.update_whitening(th.randn(200, 3) * 0.01 + 7.0)
     assert th.allclose(policy(obs), before, atol=1e-4)
     assert policy.obs_count.item() == 250
-    all_obs_var = policy.obs_var
-    assert (all_obs_var > 0).all()
+
+
+def test_whitening_floors_the_variance_of_a_constant_input():
+    th.manual_seed(0)
+    policy = PolicyNetwork(2, 1, (4,))
+    states = th.stack([th.full((10,), 3.0), th.arange(10.0)], dim=1)  # the first input never changes: variance 0
+    policy.update_whitening(states)
+    assert policy.obs_mean.tolist() == [3.0, 4.5] and policy.obs_var.tolist() == [0.0, 8.25]
+    probe = th.tensor([[3.5, 4.5], [2.0, 0.0]])
+    # the constant input is divided by the floored std, sqrt(1e-2) = 0.1, not by 0
+    assert th.allclose(policy.whiten(probe), th.tensor([[5.0, 0.0], [-10.0, -4.5 / 8.25**0.5]]))
+    # a later update still under the floor (variance 0.0025) re-expresses the first layer with the floored stds
+    before = policy(probe)
+    policy.update_whitening(th.stack([th.full((10,), 3.1), th.arange(10.0)], dim=1))
+    assert policy.obs_mean[0].item() == pytest.approx(3.05, abs=1e-6)
+    assert policy.obs_var[0].item() == pytest.approx(0.0025, abs=1e-6)
+    assert th.allclose(policy.whiten(probe)[:, 0], th.tensor([4.5, -10.5]), atol=1e-5)
+    assert th.allclose(policy(probe), before, atol=1e-5)
 
 
 def test_initial_policy_output_is_small_and_actions_are_clipped():
@@ -281,6 +298,75 @@ def test_only_planned_steps_are_distilled(monkeypatch):
     assert seen == [200 * (1 + 4)]
 
 
+def flat_policy_forward(policy: PolicyNetwork, flat: th.Tensor, obs: th.Tensor) -> th.Tensor:
+    """A reference forward of unwhitened inputs (mean 0, variance 1): tanh layers read off the flat layout."""
+    x, offset = obs, 0
+    for i, (d_in, d_out) in enumerate(policy.shapes):
+        weight = flat[offset : offset + d_in * d_out].view(d_in, d_out)
+        offset += d_in * d_out
+        x = x @ weight + flat[offset : offset + d_out]
+        offset += d_out
+        x = th.tanh(x) if i < len(policy.shapes) - 1 else x
+    return x
+
+
+def poplin_p_planned_episode(**kwargs) -> tuple[POPLIN, PolicyNetwork, list[tuple[th.Tensor, PlanResult]]]:
+    """
+    A POPLIN-P agent (distill_imagined=True) after a random and a planned episode, its policy network as it planned
+    (nothing is distilled before the first planned episode) and every plan (obs, result) of that episode.
+    """
+    model = POPLIN("poplin-p", "Pendulum-v1", seed=0, distill_imagined=True, **kwargs, **TINY)
+    planned: list[tuple[th.Tensor, PlanResult]] = []
+    plan = model.planner.plan
+
+    def recording(obs, mean, generator=None, observer=None):
+        result = plan(obs, mean, generator, observer)
+        planned.append((obs.clone(), result))
+        return result
+
+    model.planner.plan = recording
+    before = copy.deepcopy(model.policy.actor)
+    assert before.obs_count.item() == 0  # no whitening yet: the network reads raw observations
+    model.learn(400)
+    assert len(planned) == 200 and not any(result.fallback.any() for _, result in planned)
+    return model, before, planned
+
+
+def test_poplin_p_avg_distills_the_imagined_elite_blocks():
+    model, before, planned = poplin_p_planned_episode()  # Avg, overwrite: theta <- mean of the perturbations
+    w, k = before.num_params, TINY["num_elites"]
+    # per planned step: the executed block (the solution's first W entries) and the K final elites' first blocks
+    blocks = th.cat([th.cat([result.solution[:, :w], result.elites[0, :, :w]]) for _, result in planned])
+    assert blocks.shape == (200 * (1 + k), w)
+    assert th.allclose(model.policy.actor.flat_parameters(), blocks.mean(dim=0), atol=1e-6)
+
+
+def test_poplin_p_bc_distills_the_imagined_elite_actions(monkeypatch):
+    import sb3_poplin.distillation as distillation_module
+
+    seen: list[tuple[th.Tensor, th.Tensor]] = []
+    original = distillation_module.behaviour_cloning
+
+    def spy(policy, optimizer, states, targets, **kwargs):
+        seen.append((states.clone(), targets.clone()))
+        return original(policy, optimizer, states, targets, **kwargs)
+
+    monkeypatch.setattr(distillation_module, "behaviour_cloning", spy)
+    model, before, planned = poplin_p_planned_episode(distillation="bc")
+    assert model.distill_target == "planned" and len(seen) == 1
+    theta, w = before.flat_parameters().detach(), before.num_params
+    rows = []  # (state, target): the planner's action, then every final elite's, of the network it planned with
+    with th.no_grad():
+        for obs, result in planned:
+            for block in th.cat([result.solution[:, :w], result.elites[0, :, :w]]):
+                rows.append(th.cat([obs[0], flat_policy_forward(before, theta + block, obs[0])]))
+    expected = th.stack(rows)
+    states, targets = seen[0]
+    assert states.shape == (200 * (1 + TINY["num_elites"]), 3)
+    received = th.cat([states, targets], dim=1).numpy()
+    np.testing.assert_allclose(sorted_rows(received), sorted_rows(expected.numpy()), atol=1e-5)  # in any order
+
+
 # ---------------------------------------------------------------- algorithm
 @pytest.mark.parametrize("name", POLICY_CONFIGS)
 def test_variant_trains_plans_and_saves(tmp_path, name):
@@ -358,14 +444,38 @@ def test_training_collects_with_mpc_even_in_policy_control():
     assert model.num_timesteps == 400 and len(calls) == 200 and model.control == "policy"
 
 
-def test_control_modes_callback_logs_both(tmp_path):
+def test_control_modes_callback_evaluates_each_mode_under_its_control(tmp_path):
     model = POPLIN("poplin-p", "Pendulum-v1", seed=0, **TINY)
+    calls: list[tuple[str, np.ndarray, np.ndarray]] = []  # every evaluation step: the control, the obs, the action
+    predict = model.predict
+
+    def recording(observation, state=None, episode_start=None, deterministic=False):
+        action, new_state = predict(observation, state, episode_start, deterministic)
+        if not model._collecting:  # evaluate_policy's calls, not the training rollout's
+            calls.append((model.control, observation.copy(), action.copy()))
+            if model.control == "policy":  # the policy network's action, mapped to the torque bounds
+                with th.no_grad():
+                    direct = 2.0 * model.policy.actor.act(th.as_tensor(observation)).numpy()
+                np.testing.assert_allclose(action, direct, atol=1e-6)
+        return action, new_state
+
+    model.predict = recording
     callback = ControlModesEvalCallback(eval_freq=200, n_eval_episodes=2, log_path=str(tmp_path))
     model.learn(400, callback=callback)
-    for mode in ("mpc", "policy"):
+    # two evaluations, each 2 MPC episodes then 2 policy episodes of 200 steps
+    assert [control for control, _, _ in calls] == (["mpc"] * 400 + ["policy"] * 400) * 2
+    for mode_index, mode in enumerate(("mpc", "policy")):
         data = np.load(tmp_path / f"evaluations_{mode}.npz")
         assert data["timesteps"].tolist() == [200, 400] and data["results"].shape == (2, 2)
         assert (data["ep_lengths"] == 200).all()
+        for evaluation in range(2):
+            start = evaluation * 800 + mode_index * 400
+            for episode in range(2):
+                steps = calls[start + episode * 200 : start + (episode + 1) * 200]
+                observations = np.concatenate([obs for _, obs, _ in steps])
+                actions = np.concatenate([action for _, _, action in steps])
+                expected = float(pendulum_reward(observations, actions[:, 0]).sum())
+                assert data["results"][evaluation, episode] == pytest.approx(expected, rel=1e-4), (mode, evaluation)
     assert model.control == "mpc"
     pets = POPLIN("pets", "Pendulum-v1", seed=0, **TINY)
     callback = ControlModesEvalCallback(eval_freq=200, n_eval_episodes=1, log_path=str(tmp_path / "pets"))
