@@ -165,12 +165,46 @@ def test_progress_bar_and_verbose_output(capsys):
     assert model.num_timesteps == 400
 
 
+def one_step_error(model, obs, actions, next_obs):
+    """Mean squared error of the mean model's next observations (``actions`` scaled)."""
+    with th.no_grad():
+        predicted, _ = model.policy.dynamics.propagate(obs.unsqueeze(1), actions.unsqueeze(1), "expectation")
+    return float(((predicted[:, 0] - next_obs) ** 2).mean())
+
+
+def spy_on_rollouts(planner, seen):
+    """Keep every rollout's candidates and returns in ``seen`` (lists under "z" and "returns")."""
+    rollout = planner.rollout
+
+    def spy(obs, z, context, generator=None):
+        returns = rollout(obs, z, context, generator)
+        seen.setdefault("z", []).append(z.clone())
+        seen.setdefault("returns", []).append(returns.clone())
+        return returns
+
+    planner.rollout = spy
+
+
 def test_random_shooting_trains_and_plans():
     model = tiny("rs", population_size=64)
     model.learn(400)
-    assert model._model_fitted
-    action, _ = model.predict(np.array([1.0, 0.0, 0.0], dtype=np.float32))
-    assert action.shape == (1,) and -2.0 <= action[0] <= 2.0
+    assert model._model_fitted and model._n_updates == 2
+    # trained (twice, two epochs each): on the 400 transitions it saw, it predicts better than the untrained model
+    buffer = model.replay_buffer
+    obs, next_obs = (th.as_tensor(a[:400, 0]) for a in (buffer.observations, buffer.next_observations))
+    actions = th.as_tensor(buffer.actions[:400, 0])
+    untrained = tiny("rs", population_size=64)
+    assert one_step_error(model, obs, actions, next_obs) < 0.9 * one_step_error(untrained, obs, actions, next_obs)
+    # plans: the executed action is the first action of the candidate with the best return, in env units (bounds +-2),
+    # and the warm start is the rest of it
+    seen = {}
+    spy_on_rollouts(model.planner, seen)
+    action, state = model.predict(np.array([1.0, 0.0, 0.0], dtype=np.float32))
+    (z,), (returns,) = seen["z"], seen["returns"]
+    assert returns.std() > 0  # the model tells the candidates apart
+    best = z[0, returns[0].argmax()]  # [H]
+    np.testing.assert_allclose(action, [2.0 * best[0].item()], atol=1e-6)
+    np.testing.assert_allclose(state[0], [*best[1:].tolist(), 0.0], atol=1e-7)
 
 
 def test_inverted_pendulum_with_termination_and_vec_env():
@@ -180,16 +214,66 @@ def test_inverted_pendulum_with_termination_and_vec_env():
     # one episode length in steps: SB3 counts episodes with one env only
     assert (model.train_freq.frequency, model.train_freq.unit.value) == (1000, "step")
     model.learn(300)
-    actions, _ = model.predict(env.reset())
-    assert actions.shape == (2, 1) and np.all(np.abs(actions) <= 3.0)
+    model.train(1, 1)  # refit on the 300 transitions now (the first refit would come at 1000 steps)
+    # the returns of the planner's rollout count the steps before the first predicted fall (|angle| > 0.2 pays 0 and
+    # ends the imagined episode), here against the mean model stepped by hand
+    obs = th.tensor([[0.0, 0.15, 0.0, 0.5], [0.0, -0.1, 0.3, -0.8]])
+    z = th.rand(2, 60, 8, generator=th.Generator().manual_seed(0)) * 2 - 1
+    with th.inference_mode():
+        returns = model.planner.rollout(obs, z, None)
+        states = obs.repeat_interleave(60, dim=0).unsqueeze(1)  # [120, 1, 4]
+        masked, unmasked, alive = th.zeros(120), th.zeros(120), th.ones(120, dtype=th.bool)
+        for t in range(8):
+            states, _ = model.policy.dynamics.propagate(states, z.reshape(120, 1, 8)[:, :, t : t + 1], "expectation")
+            fallen = states[:, 0, 1].abs() > 0.2
+            unmasked += (~fallen).float()
+            alive &= ~fallen
+            masked += alive.float()
+    assert th.equal(returns.reshape(-1), masked)
+    assert masked.min() < 8 and masked.max() > masked.min()  # some imagined poles fall, at different steps
+    assert (unmasked > masked).any()  # some rise again after falling: what comes after a fall must not count
+    # both envs are planned in one batch; each executes the first planned action clipped to the bounds (+-3) and keeps
+    # the rest of its plan as its warm start
+    plans = []
+    plan = model.planner.plan
+
+    def spy(obs, mean, generator=None):
+        plans.append(plan(obs, mean, generator))
+        return plans[-1]
+
+    model.planner.plan = spy
+    actions, state = model.predict(env.reset())
+    (result,) = plans
+    solution = result.solution.numpy()  # [2, 8]
+    assert actions.shape == (2, 1) and np.abs(solution[:, 0]).max() > 0
+    np.testing.assert_allclose(actions[:, 0], 3.0 * np.clip(solution[:, 0], -1.0, 1.0), atol=1e-6)
+    np.testing.assert_array_equal(state, np.concatenate([solution[:, 1:], np.zeros((2, 1))], axis=1))
 
 
 def test_learned_reward_fallback_warns_for_unknown_envs():
     env = gym.make("MountainCarContinuous-v0")
     with pytest.warns(UserWarning, match="learns the reward.*termination_fn="):
-        model = POPLIN("pets", env, seed=0, **TINY)
+        model = POPLIN("pets", env, seed=0, train_freq=(60, "step"), **TINY)  # a fit every 60 steps
     assert model.learned_reward and model.planner.reward_fn is None
+    seen = {}
+    spy_on_rollouts(model.planner, seen)
     model.learn(120, reset_num_timesteps=True)
+    assert model._n_updates == 2 and len(seen["z"]) == 60 * TINY["cem_iterations"]  # planned the 60 steps after the first fit
+    # the planner scores candidates with the learned reward: the reward head's output summed along the mean model
+    # (the members' average prediction), here computed with the model's plain forward
+    dynamics = model.policy.dynamics
+    obs = th.tensor([[-0.5, 0.0], [-0.9, 0.03]])
+    z = th.rand(2, 10, TINY["horizon"], generator=th.Generator().manual_seed(0)) * 2 - 1
+    with th.inference_mode():
+        returns = model.planner.rollout(obs, z, None)
+        states, expected = obs.repeat_interleave(10, dim=0), th.zeros(20)
+        for t in range(TINY["horizon"]):
+            x = (th.cat([states, z.reshape(20, -1)[:, t : t + 1]], dim=1) - dynamics.input_mean) / dynamics.input_std
+            mean, _ = dynamics(x.expand(dynamics.ensemble_size, -1, -1))
+            prediction = mean.mean(dim=0) * dynamics.target_std + dynamics.target_mean  # [20, delta (2) + reward]
+            states, expected = states + prediction[:, :2], expected + prediction[:, 2]
+    assert expected.std() > 0  # the reward head tells the candidates apart
+    assert th.allclose(returns.reshape(-1), expected, atol=1e-5)
 
 
 # ---------------------------------------------------------------- save / load

@@ -1,5 +1,6 @@
 """Reliability: clear errors for bad input, NaN-safe planning, exact save/load/resume, determinism, interruptions."""
 
+import functools
 import io
 import json
 import warnings
@@ -22,6 +23,7 @@ from conftest import TINY, tiny
 
 import sb3_poplin
 from sb3_poplin import POPLIN
+from sb3_poplin.policies import PolicyNetwork
 from sb3_poplin.tasks.paper import pets_cheetah_obs_postproc, pets_cheetah_obs_preproc, pets_cheetah_targ_proc
 
 
@@ -330,9 +332,32 @@ def test_all_diverged_falls_back_warns_once_and_counts(variant, tmp_path):
     assert model.logger.name_to_value["plan/fallbacks"] == 4
 
 
+@functools.cache
+def fitted_inverted_pendulum_dynamics():
+    """A dynamics model (2 members, one hidden layer of 8) fitted once on 300 random InvertedPendulum-v5 steps."""
+    model = POPLIN("pets", "InvertedPendulum-v5", seed=0, ensemble_size=2, dynamics_net_arch=(8,), train_freq=(300, "step"))
+    model.learn(300)
+    assert model._n_updates == 1
+    return model.policy.dynamics.state_dict()
+
+
+def first_planned_action(model, obs, solution):
+    """The first action (scaled, before the clip) that a plan's solution stands for, from each variant's definition."""
+    actor = model.policy.actor
+    if model.variant in ("pets", "rs"):  # the action sequence itself
+        return solution[:, :1]
+    if model.variant == "poplin-a":  # noise on the clipped policy action
+        return actor(obs).clamp(-1.0, 1.0) + solution[:, :1]
+    moved = PolicyNetwork(4, 1, model.policy_net_arch)  # POPLIN-P: the network with its parameters moved by block 0
+    moved.load_state_dict(actor.state_dict())
+    moved.add_to_parameters(solution[0, : actor.num_params])
+    return moved(obs)
+
+
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     variant=st.sampled_from(["pets", "rs", "poplin-a", "poplin-p"]),
+    noise=st.sampled_from(["sep", "uni"]),
     horizon=st.integers(1, 4),
     population=st.integers(2, 12),
     elite_fraction=st.floats(0.01, 1.0),
@@ -340,11 +365,13 @@ def test_all_diverged_falls_back_warns_once_and_counts(variant, tmp_path):
     alpha=st.floats(0.0, 0.99),
     init_var=st.floats(1e-4, 4.0),
     propagation=st.sampled_from(["expectation", "ts1", "tsinf", "ds"]),
-    obs=st.lists(st.floats(-1e6, 1e6) | st.sampled_from([np.nan, np.inf, -np.inf]), min_size=4, max_size=4),
+    # half the observations finite (the plans are checked), half with NaN or +-inf entries most of the time
+    obs=st.lists(st.floats(-1e6, 1e6), min_size=4, max_size=4)
+    | st.lists(st.floats(-1e6, 1e6) | st.sampled_from([np.nan, np.inf, -np.inf]), min_size=4, max_size=4),
     seed=st.integers(0, 2**16),
 )
 def test_predict_is_always_finite_and_in_bounds(
-    variant, horizon, population, elite_fraction, iterations, alpha, init_var, propagation, obs, seed
+    variant, noise, horizon, population, elite_fraction, iterations, alpha, init_var, propagation, obs, seed
 ):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -352,6 +379,7 @@ def test_predict_is_always_finite_and_in_bounds(
             variant,
             "InvertedPendulum-v5",  # action bounds +-3
             seed=seed,
+            noise=noise,
             horizon=horizon,
             population_size=population,
             num_elites=max(1, int(population * elite_fraction)),
@@ -363,8 +391,34 @@ def test_predict_is_always_finite_and_in_bounds(
             ensemble_size=2,
             dynamics_net_arch=(8,),
         )
-        action, _ = model.predict(np.array(obs, dtype=np.float32))
+        model.policy.dynamics.load_state_dict(fitted_inverted_pendulum_dynamics())
+        plans = []
+        plan = model.planner.plan
+
+        def spy(obs, mean, generator=None):
+            plans.append((obs, plan(obs, mean, generator)))
+            return plans[-1][1]
+
+        model.planner.plan = spy
+        action, state = model.predict(np.array(obs, dtype=np.float32))
     assert np.isfinite(action).all() and np.all(np.abs(action) <= 3.0)
+    # from a finite observation every return is finite (InvertedPendulum pays 0 or 1), so no plan falls back: the action
+    # is the plan's first planned action clipped to the bounds, and the warm start is the plan moved on by one step
+    # (with an infinite observation, POPLIN-P's perturbed network may give inf - inf, so the action-space centre, where
+    # the network with the perturbation added is finite)
+    if not np.isfinite(obs).all():
+        return
+    ((obs_tensor, result),) = plans
+    assert not result.fallback.item()
+    with th.no_grad():
+        expected = first_planned_action(model, obs_tensor, result.solution).clamp(-1.0, 1.0)
+    block = model.policy.actor.num_params if variant == "poplin-p" else 1
+    if variant == "poplin-p" and noise == "uni":
+        expected_state = result.solution
+    else:
+        expected_state = th.cat([result.solution[:, block:], th.zeros(1, block)], dim=1)
+    np.testing.assert_allclose(action, 3.0 * expected[0].numpy(), atol=1e-5)
+    np.testing.assert_array_equal(state, expected_state.numpy())
 
 
 # ---------------------------------------------------------------- save / load / resume, determinism
