@@ -183,6 +183,8 @@ def shared_input_mean(model: ProbabilisticEnsemble, x: th.Tensor) -> th.Tensor:
         layers = ParameterCache.layers(model, dtype, "batched")
         weight, bias = layers[0]
         h = th.matmul(x.to(dtype), weight)  # [B, in] @ [E, in, H] -> [E, B, H]
+        if len(layers) == 1:  # no hidden layer: that product is the output layer's
+            return h.add_(bias).to(x.dtype)
         for i, (weight, bias) in enumerate(layers[:-1]):
             if i > 0:
                 h = th.bmm(h, weight)

@@ -304,3 +304,20 @@ def test_episode_start_in_a_vec_env_resets_only_the_ended_env(variant: str) -> N
     expected = state.copy()
     expected[1] = 0.0  # the initial mean of every search space
     np.testing.assert_array_equal(means[1].numpy(), expected)
+
+
+# ---------------------------------------------------------------- a model without hidden layers
+@pytest.mark.parametrize("learned_reward", [False, True])  # with the reward, the input and output widths are equal (4)
+def test_expectation_propagation_of_a_model_without_hidden_layers(learned_reward: bool) -> None:
+    """A linear ensemble (``dynamics_net_arch=()``): the planner's mean-model step is the members' average output."""
+    th.manual_seed(0)
+    model = ProbabilisticEnsemble(3, 1, ensemble_size=2, hidden_sizes=(), learned_reward=learned_reward)
+    obs, actions = th.randn(6, 1, 3), th.rand(6, 1, 1) * 2 - 1
+    with th.inference_mode():  # the planner's no-gradient path (fewer rows than the fused forward takes)
+        next_obs, reward = model.propagate(obs, actions, "expectation")
+    x = th.cat([obs[:, 0], actions[:, 0]], dim=1)  # the normalisers are at mean 0, std 1
+    weight, bias = model.output.weight[:, :, : model.out_dim], model.output.bias[:, :, : model.out_dim]
+    expected = (x @ weight + bias).mean(dim=0).detach()  # [6, out]
+    assert th.allclose(next_obs[:, 0], obs[:, 0] + expected[:, :3], atol=1e-6)
+    if learned_reward:
+        assert th.allclose(reward[:, 0], expected[:, 3], atol=1e-6)
