@@ -14,11 +14,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import gymnasium.envs.registration
 import pytest
 from conftest import TINY
 
 import sb3_poplin
 import sb3_poplin.poplin
+import sb3_poplin.tasks
 from sb3_poplin import POPLIN
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -190,6 +192,9 @@ def run_blocks(path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> i
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(sb3_poplin, "POPLIN", TinyPOPLIN)
     monkeypatch.setattr(sb3_poplin.poplin, "POPLIN", TinyPOPLIN)
+    # what a page registers (its own env and task) ends with the test: later tests see the built-in registries
+    monkeypatch.setattr(sb3_poplin.tasks, "_REGISTRY", dict(sb3_poplin.tasks._REGISTRY))
+    monkeypatch.setattr(gymnasium.envs.registration, "registry", dict(gymnasium.envs.registration.registry))
     namespace: dict[str, Any] = {"__name__": "__docs__"}
     ran = 0
     for line, source in blocks:
