@@ -300,8 +300,8 @@ class Distiller:
         space = self.search_space
         action = plan.action if self.target == "executed" else space.planned_action(plan.solution, obs, None)
         record = {"states": obs.clone(), "actions": action, "keep": ~plan.fallback}
-        if self.method == "avg":
-            record["blocks"] = space.first_block(plan.solution)
+        if self.method == "avg":  # the final mean, as the original Avg (also when the best candidate is executed)
+            record["blocks"] = space.first_block(plan.mean)
         if self.imagined:
             elite_blocks = space.first_block(plan.elites)  # [n_envs, K, block]
             if self.method == "avg":

@@ -20,6 +20,7 @@ import math
 from abc import ABC, abstractmethod
 from itertools import pairwise
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import warnings
@@ -42,10 +43,93 @@ PLANNING_DTYPES = {"float32": th.float32, "bfloat16": th.bfloat16}
 class OptimizerResult(NamedTuple):
     """What an optimizer found for each env."""
 
-    solution: th.Tensor  # [n_envs, D]: CEM's final mean, or random shooting's best sample
+    solution: th.Tensor  # [n_envs, D]: what is executed: CEM's final mean or best candidate, random shooting's best
     elite_return: th.Tensor  # [n_envs]: mean return of the final elites (or the best sample)
-    elites: th.Tensor  # [n_envs, K, D]: the final elites (random shooting: the best sample, K = 1)
+    elites: th.Tensor  # [n_envs, K, D]: the final elites, best first (random shooting: the best sample, K = 1)
     found: th.Tensor  # [n_envs] bool: some candidate had a finite return (else the solution is the incoming mean)
+    mean: th.Tensor  # [n_envs, D]: the final mean (random shooting: the solution); the next step's warm start
+
+
+EXECUTES = ("mean", "best")
+
+
+@dataclass(frozen=True)
+class CEMOptions:
+    """
+    The modifications of iCEM (Pinneri et al. 2020, "Sample-efficient Cross-Entropy Method for Real-time Planning")
+    as options of :class:`CEM`, each on its own; the defaults are the plain CEM of PETS/POPLIN.
+
+    :param noise_beta: exponent of the power-law spectrum of the sampling noise along the horizon: each candidate's
+        noise, per search dimension of a step block, has power ``~ 1 / f^beta`` over the H steps (0: white noise, as
+        CEM; larger: smoother, more correlated steps). Needs a search space with a horizon axis
+    :param keep_elites: fraction of the elites kept into the next iteration (rounded up to whole candidates) and
+        ranked again with the new samples; they are re-evaluated, except under the ``"expectation"`` propagation where
+        their return is known exactly
+    :param shift_elites: carry the kept fraction of the final elites, shifted one step like the mean, into the next
+        env step's first iteration (part of the warm start). Needs ``keep_elites > 0``
+    :param population_decay: iteration ``i`` samples ``min(N, max(2 K, floor(N / decay^i)))`` new candidates
+        (1: ``N`` every iteration)
+    :param add_mean: the final mean is one more candidate of the last iteration
+    :param execute: ``"mean"``: the final mean's first step is executed (CEM); ``"best"``: the best candidate's of
+        the last iteration
+    """
+
+    noise_beta: float = 0.0
+    keep_elites: float = 0.0
+    shift_elites: bool = False
+    population_decay: float = 1.0
+    add_mean: bool = False
+    execute: str = "mean"
+
+    def __post_init__(self) -> None:
+        for name in ("shift_elites", "add_mean"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"optimizer_kwargs[{name!r}] must be True or False, got {getattr(self, name)!r}")
+        if not (isinstance(self.noise_beta, (int, float)) and 0.0 <= self.noise_beta <= 8.0):
+            raise ValueError(
+                f"optimizer_kwargs['noise_beta'] must be a number in [0, 8] (0: white noise, 2: iCEM's default), "
+                f"got {self.noise_beta!r}"
+            )
+        if not (isinstance(self.keep_elites, (int, float)) and 0.0 <= self.keep_elites <= 1.0):
+            raise ValueError(f"optimizer_kwargs['keep_elites'] must be a fraction in [0, 1], got {self.keep_elites!r}")
+        if not (isinstance(self.population_decay, (int, float)) and self.population_decay >= 1.0):
+            raise ValueError(
+                f"optimizer_kwargs['population_decay'] must be >= 1 (1: no decay, iCEM: 1.25), got {self.population_decay!r}"
+            )
+        check_choice("optimizer_kwargs['execute']", self.execute, EXECUTES)
+        if self.shift_elites and self.keep_elites == 0:
+            raise ValueError(
+                "optimizer_kwargs: shift_elites=True carries the kept fraction of the elites to the next env step, but "
+                "keep_elites is 0: set keep_elites > 0 (iCEM: 0.3) or shift_elites=False"
+            )
+
+
+# iCEM's defaults (Pinneri et al. 2020): what optimizer="icem" selects before the user's optimizer_kwargs
+ICEM_OPTIONS = CEMOptions(
+    noise_beta=2.0, keep_elites=0.3, shift_elites=True, population_decay=1.25, add_mean=True, execute="best"
+)
+OPTIMIZERS = {"cem": CEMOptions(), "icem": ICEM_OPTIONS}
+
+
+def colored_noise_filter(steps: int, beta: float) -> th.Tensor:
+    """
+    The linear map ``[steps, steps]`` that turns white noise along a horizon of ``steps`` into noise with a power-law
+    spectrum: each frequency ``f = k / steps`` (k = 1 .. steps // 2) of the white input is scaled by ``f^(-beta / 2)``
+    (the zero frequency like the lowest non-zero one), and the result is scaled to unit variance per step. Applied to
+    independent standard normal steps it gives a stationary Gaussian sequence whose expected periodogram is
+    proportional to ``f^-beta`` (circular along the horizon). ``beta = 0`` gives the identity.
+
+    :param steps: the horizon length (number of step blocks)
+    :param beta: the spectrum's exponent, >= 0
+    """
+    if steps == 1 or beta == 0:
+        return th.eye(steps, dtype=th.float64)
+    freqs = th.fft.rfftfreq(steps, dtype=th.float64)
+    freqs[0] = freqs[1]
+    scale = freqs ** (-beta / 2.0)
+    # column j: the map applied to the unit impulse at step j
+    filtered = th.fft.irfft(th.fft.rfft(th.eye(steps, dtype=th.float64), dim=0) * scale.unsqueeze(1), n=steps, dim=0)
+    return filtered / filtered.square().sum(dim=1, keepdim=True).sqrt()
 
 
 class CEM:
@@ -54,13 +138,16 @@ class CEM:
     N(mean, var), keep the ``num_elites`` best, and move mean and variance towards the elites'
     statistics: ``new = alpha * old + (1 - alpha) * elite``. A candidate whose return is NaN or
     +-inf is never an elite; if an env has no finite candidate, its distribution is left unchanged.
+    With :class:`CEMOptions` it becomes iCEM, or any part of it.
 
     :param population_size: candidates per iteration and env
     :param num_elites: elites per iteration
     :param iterations: CEM iterations per plan
     :param alpha: momentum of the old statistics, in [0, 1)
     :param sampling: ``"truncated"`` (normal truncated at 2 sigma, redrawn beyond) or ``"clipped"``
-        (plain normal; the search space clips to its bounds)
+        (plain normal; the search space clips to its bounds). With colored noise the white draws are
+        truncated or not, then colored
+    :param options: the iCEM options (default: none)
     """
 
     def __init__(
@@ -70,6 +157,7 @@ class CEM:
         iterations: int,
         alpha: float = 0.1,
         sampling: str = "truncated",
+        options: CEMOptions | None = None,
     ) -> None:
         check_choice("cem_sampling", sampling, SAMPLINGS)
         self.population_size = population_size
@@ -77,8 +165,56 @@ class CEM:
         self.iterations = iterations
         self.alpha = alpha
         self.sampling = sampling
+        self.options = CEMOptions() if options is None else options
         self.sampler = CandidateSampler(population_size, sampling)
         self._workspace = Workspace()
+        self._filters: dict[tuple[int, str], th.Tensor] = {}
+
+    @property
+    def kept(self) -> int:
+        """Elites kept into the next iteration (and carried to the next env step with ``shift_elites``)."""
+        return min(self.num_elites, math.ceil(self.options.keep_elites * self.num_elites))
+
+    @property
+    def carried(self) -> int:
+        """Shifted elites carried to the next env step's first iteration."""
+        return self.kept if self.options.shift_elites else 0
+
+    def samples(self, iteration: int) -> int:
+        """New candidates sampled at an iteration (decayed with ``population_decay``)."""
+        decay = self.options.population_decay
+        if decay == 1.0:
+            return self.population_size
+        return min(self.population_size, max(2 * self.num_elites, int(self.population_size / decay**iteration)))
+
+    def evaluations(self, reuse: bool) -> int:
+        """
+        Candidates evaluated per plan and env: the samples of every iteration, the carried elites at the first, the
+        kept elites at the others (unless ``reuse``: their returns are known), the mean at the last.
+
+        :param reuse: the kept elites' returns are reused (exact under the ``"expectation"`` propagation)
+        """
+        total = sum(self.samples(i) for i in range(self.iterations)) + self.carried
+        if not reuse:
+            total += self.kept * (self.iterations - 1)
+        return total + (1 if self.options.add_mean else 0)
+
+    def _colored(self, eps: th.Tensor, steps: int) -> th.Tensor:
+        """White noise ``[n_envs, n, D]`` (D = steps x block) colored along the steps, in a new tensor."""
+        key = (steps, str(eps.device))
+        if key not in self._filters:
+            self._filters[key] = colored_noise_filter(steps, self.options.noise_beta).to(eps.device, th.float32)
+        n_envs, n, dim = eps.shape
+        return th.matmul(self._filters[key], eps.view(n_envs, n, steps, dim // steps)).view(n_envs, n, dim)
+
+    def _sample(self, mean: th.Tensor, std: th.Tensor, count: int, steps: int, generator: th.Generator | None) -> th.Tensor:
+        """``count`` candidates per env; white noise in the sampler's reused buffer, colored noise in a new tensor."""
+        if self.options.noise_beta == 0:
+            return self.sampler.sample(mean, std, generator, count)
+        if mean.shape[1] % steps:
+            raise ValueError(f"colored noise: the search vector's size {mean.shape[1]} is not a multiple of {steps} steps")
+        eps = self.sampler.sample(th.zeros_like(mean), th.ones_like(std), generator, count)
+        return th.addcmul(mean.unsqueeze(1), self._colored(eps, steps), std.unsqueeze(1))
 
     def optimize(
         self,
@@ -87,6 +223,9 @@ class CEM:
         var: th.Tensor,
         constrain_var: Callable[[th.Tensor, th.Tensor], th.Tensor],
         generator: th.Generator | None = None,
+        steps: int = 1,
+        carried: th.Tensor | None = None,
+        reuse: bool = False,
     ) -> OptimizerResult:
         """
         :param evaluate: ``z [n_envs, N, D] -> returns [n_envs, N]``
@@ -94,19 +233,43 @@ class CEM:
         :param var: initial variance ``[n_envs, D]``
         :param constrain_var: the search space's variance constraint ``(mean, var) -> var``
         :param generator: random generator for the samples
+        :param steps: step blocks along the search vector (its horizon axis; 1: none), for colored noise
+        :param carried: with ``shift_elites``, the previous step's shifted elites ``[n_envs, carried, D]``; a NaN row
+            (no previous plan) is replaced by one more sample
+        :param reuse: the returns of kept elites are known exactly (deterministic evaluation): not re-evaluated
         """
         n_envs, dim = mean.shape
+        if self.options.noise_beta > 0 and steps == 1:
+            raise ValueError("noise_beta > 0 needs a search space with a horizon axis (one block per planning step)")
         elite_return = th.zeros(n_envs, device=mean.device)
         elites = mean.unsqueeze(1).expand(n_envs, self.num_elites, dim)
         found = th.zeros(n_envs, dtype=th.bool, device=mean.device)
-        for _ in range(self.iterations):
-            z = self.sampler.sample(mean, constrain_var(mean, var).sqrt(), generator)  # [n_envs, N, D], reused buffer
+        kept: tuple[th.Tensor, th.Tensor] | None = None  # the previous iteration's best elites and their returns
+        for i in range(self.iterations):
+            std = constrain_var(mean, var).sqrt()
+            n = self.samples(i)
+            first_carries = i == 0 and self.carried > 0
+            z = self._sample(mean, std, n + (self.carried if first_carries else 0), steps, generator)  # [n_envs, n, D]
+            extra = []
+            if first_carries:  # the carried elites replace the last samples, except where there are none (NaN)
+                assert carried is not None and carried.shape == (n_envs, self.carried, dim), "carried elites missing"
+                z[:, n:] = th.where(carried.isnan().any(dim=2, keepdim=True), z[:, n:], carried)
+            elif i > 0 and kept is not None and not reuse:
+                extra.append(kept[0])
+            if i == self.iterations - 1 and self.options.add_mean:
+                extra.append(mean.unsqueeze(1))
+            if extra:
+                z = th.cat([z, *extra], dim=1)
             returns = evaluate(z)  # [n_envs, N]
+            if i > 0 and kept is not None and reuse:
+                z, returns = th.cat([z, kept[0]], dim=1), th.cat([returns, kept[1]], dim=1)
             returns = th.where(th.isfinite(returns), returns, th.full_like(returns, -math.inf))
-            top, idx = returns.topk(self.num_elites, dim=1)  # [n_envs, K]
+            top, idx = returns.topk(self.num_elites, dim=1)  # [n_envs, K], best first
             # [n_envs, K, D]: one row gather (take_along_dim would expand the index to K x D and wrap it)
-            rows = (idx + th.arange(n_envs, device=idx.device).unsqueeze(1) * self.population_size).view(-1)
-            elites = z.view(n_envs * self.population_size, dim).index_select(0, rows).view(n_envs, -1, dim)
+            rows = (idx + th.arange(n_envs, device=idx.device).unsqueeze(1) * z.shape[1]).view(-1)
+            elites = z.reshape(n_envs * z.shape[1], dim).index_select(0, rows).view(n_envs, -1, dim)
+            if self.kept:
+                kept = (elites[:, : self.kept], top[:, : self.kept])
             valid = th.isfinite(top)  # [n_envs, K]: -inf rows are not elites
             count = valid.sum(dim=1, keepdim=True).clamp(min=1).to(z.dtype)  # [n_envs, 1]
             # weighted means as [1, K] x [K, D] products: one pass over the elites each (element-wise weighting and a
@@ -122,7 +285,8 @@ class CEM:
             mean = th.where(has_elites, self.alpha * mean + (1 - self.alpha) * elite_mean, mean)
             var = th.where(has_elites, self.alpha * var + (1 - self.alpha) * elite_var, var)
             elite_return = th.where(valid, top, th.zeros_like(top)).sum(dim=1) / count.squeeze(1)
-        return OptimizerResult(mean, elite_return, elites, found)
+        solution = mean if self.options.execute == "mean" else th.where(found.unsqueeze(1), elites[:, 0], mean)
+        return OptimizerResult(solution, elite_return, elites, found, mean)
 
 
 class RandomShooting:
@@ -133,9 +297,15 @@ class RandomShooting:
     :param population_size: candidates per env
     """
 
+    carried = 0  # nothing is carried to the next env step
+
     def __init__(self, population_size: int) -> None:
         self.population_size = population_size
         self.iterations = 1
+
+    def evaluations(self, reuse: bool) -> int:
+        """Candidates evaluated per plan and env."""
+        return self.population_size
 
     def optimize(
         self,
@@ -144,6 +314,9 @@ class RandomShooting:
         var: th.Tensor,
         constrain_var: Callable[[th.Tensor, th.Tensor], th.Tensor],
         generator: th.Generator | None = None,
+        steps: int = 1,
+        carried: th.Tensor | None = None,
+        reuse: bool = False,
     ) -> OptimizerResult:
         n_envs, dim = mean.shape
         z = th.rand((n_envs, self.population_size, dim), device=mean.device, generator=generator) * 2.0 - 1.0
@@ -155,7 +328,7 @@ class RandomShooting:
         finite = th.isfinite(best_return).unsqueeze(1)
         solution = th.where(finite, solution, mean)
         found = finite.squeeze(1)
-        return OptimizerResult(solution, th.where(found, best_return, 0.0), solution.unsqueeze(1), found)
+        return OptimizerResult(solution, th.where(found, best_return, 0.0), solution.unsqueeze(1), found, solution)
 
 
 class SearchSpace(ABC):
@@ -185,6 +358,11 @@ class SearchSpace(ABC):
     def dim(self) -> int:
         """Size D of the search vector (one block per planning step by default)."""
         return self.horizon * self.block
+
+    @property
+    def steps(self) -> int:
+        """Blocks along the search vector: its horizon axis (1 when one block drives every step)."""
+        return self.dim // self.block
 
     def first_block(self, solution: th.Tensor) -> th.Tensor:
         """The block of ``solution [..., D]`` that drives the executed step, ``[..., block]``."""
@@ -393,11 +571,12 @@ class PlanResult(NamedTuple):
     """One plan for a batch of envs."""
 
     action: th.Tensor  # [n_envs, A] scaled action to execute
-    next_mean: th.Tensor  # [n_envs, D] warm start for the next env step
+    next_state: th.Tensor  # [n_envs, S] warm start for the next env step (MPCPlanner.state_dim)
     elite_return: th.Tensor  # [n_envs] planned return of the final elites
-    solution: th.Tensor  # [n_envs, D] the optimizer's solution (CEM: final mean)
-    elites: th.Tensor  # [n_envs, K, D] the final elites
+    solution: th.Tensor  # [n_envs, D] the executed solution (CEM: the final mean, or the best candidate)
+    elites: th.Tensor  # [n_envs, K, D] the final elites, best first
     fallback: th.Tensor  # [n_envs] bool: no candidate was finite, the fallback action was used
+    mean: th.Tensor  # [n_envs, D] the final mean (random shooting: the solution)
 
 
 class MPCPlanner:
@@ -470,10 +649,26 @@ class MPCPlanner:
         else:
             model_rows = self.num_particles * (hidden + 2 * last * 2 * model.out_dim)
         policy_rows = self.num_particles * space.policy_rows_per_step * space.policy_row_flops
-        per_plan = self.optimizer.iterations * space.horizon * self.optimizer.population_size * (model_rows + policy_rows)
+        candidates = self.optimizer.evaluations(reuse=self.propagation == "expectation")
+        per_plan = candidates * space.horizon * (model_rows + policy_rows)
         per_plan += space.prepare_steps * (model.ensemble_size * mean_row + space.policy_row_flops)
         per_plan += 2 * space.policy_row_flops  # the executed and the fallback action of every env
         return float(n_envs * per_plan)
+
+    @property
+    def state_dim(self) -> int:
+        """
+        Width S of the warm start carried between env steps: the shifted mean ``[D]``, then, when the optimizer
+        carries shifted elites (iCEM), those ``[carried x D]`` (NaN rows: none yet).
+        """
+        return self.search_space.dim * (1 + self.optimizer.carried)
+
+    def initial_state(self, n_envs: int, device: th.device) -> th.Tensor:
+        """The warm start at an episode start ``[n_envs, S]``: the search space's initial mean, no carried elites."""
+        mean = self.search_space.initial_mean(n_envs, device)
+        if not self.optimizer.carried:
+            return mean
+        return th.cat([mean, th.full((n_envs, self.state_dim - mean.shape[1]), math.nan, device=device)], dim=1)
 
     def to_env_units(self, scaled: th.Tensor) -> th.Tensor:
         """Map scaled actions in [-1, 1] to env units."""
@@ -552,13 +747,13 @@ class MPCPlanner:
     def plan(
         self,
         obs: th.Tensor,
-        mean: th.Tensor,
+        state: th.Tensor,
         generator: th.Generator | None = None,
         observer: Callable[[th.Tensor, th.Tensor], None] | None = None,
     ) -> PlanResult:
         """
         :param obs: real observations ``[n_envs, o]``
-        :param mean: warm-start mean ``[n_envs, D]``
+        :param state: warm start ``[n_envs, S]`` (:attr:`state_dim`; the mean ``[n_envs, D]`` unless elites are carried)
         :param generator: random generator for sampling and propagation
         :param observer: called with every iteration's candidates ``[n_envs, N, D]`` and their returns
             ``[n_envs, N]`` (the candidates' buffer is reused: copy what you keep); for analyses
@@ -571,28 +766,37 @@ class MPCPlanner:
                 observer(z, returns)
             return returns
 
+        space = self.search_space
+        n_envs, dim, carried = obs.shape[0], space.dim, self.optimizer.carried
+        mean = state[:, :dim]
         result = self.optimizer.optimize(
             evaluate,
             mean,
-            self.search_space.initial_var(mean),
-            self.search_space.constrain_var,
+            space.initial_var(mean),
+            space.constrain_var,
             generator,
+            steps=space.steps,
+            carried=state[:, dim:].view(n_envs, carried, dim) if carried else None,
+            reuse=self.propagation == "expectation",  # a deterministic rollout: a kept elite's return is known
         )
-        space = self.search_space
         found = result.found.unsqueeze(1)
         action = th.where(found, space.executed_action(result.solution, obs, context), space.fallback_action(obs))
         # never a non-finite action (e.g. a NaN observation): the action-space centre instead
         action = th.nan_to_num(action, nan=0.0, posinf=1.0, neginf=-1.0).clamp(-1.0, 1.0)
+        next_state = space.shift(result.mean)
+        if carried:  # the best elites, shifted like the mean
+            shifted = space.shift(result.elites[:, :carried].reshape(n_envs * carried, dim)).view(n_envs, carried * dim)
+            next_state = th.cat([next_state, shifted], dim=1)
         # an env whose plan failed starts afresh at the next step
-        next_mean = th.where(found, space.shift(result.solution), space.initial_mean(obs.shape[0], obs.device))
-        return PlanResult(action, next_mean, result.elite_return, result.solution, result.elites, ~result.found)
+        next_state = th.where(found, next_state, self.initial_state(n_envs, obs.device))
+        return PlanResult(action, next_state, result.elite_return, result.solution, result.elites, ~result.found, result.mean)
 
 
 class MPCStep(NamedTuple):
     """One MPC step for a batch of envs, on the host where SB3 wants it and on the device for distillation."""
 
     actions: np.ndarray  # [n_envs, A] in env units
-    state: np.ndarray  # [n_envs, D] warm start for the next step (the shifted solution)
+    state: np.ndarray  # [n_envs, S] warm start for the next step (MPCPlanner.state_dim: the shifted mean, carried elites)
     plan: PlanResult  # the plan, on the device
 
 
@@ -623,24 +827,24 @@ class MPCController:
         else:
             self.generator.manual_seed(seed)
 
-    def _start_mean(self, n_envs: int, state: np.ndarray | None, episode_start: np.ndarray | None) -> th.Tensor:
-        space = self.planner.search_space
+    def _start_state(self, n_envs: int, state: np.ndarray | None, episode_start: np.ndarray | None) -> th.Tensor:
+        planner = self.planner
         if state is None and episode_start is None and self.warm_start is not None and self.warm_start.shape[0] == n_envs:
-            mean = self.warm_start
+            start = self.warm_start
         elif state is None:
-            mean = space.initial_mean(n_envs, self.device)
+            start = planner.initial_state(n_envs, self.device)
         else:
-            mean = th.as_tensor(state, dtype=th.float32, device=self.device)
-            if mean.shape != (n_envs, space.dim):
+            start = th.as_tensor(state, dtype=th.float32, device=self.device)
+            if start.shape != (n_envs, planner.state_dim):
                 raise ValueError(
-                    f"state has shape {tuple(mean.shape)} but the planner needs ({n_envs}, {space.dim}): pass back the "
-                    "state returned by the previous predict() call for the same observations, or None"
+                    f"state has shape {tuple(start.shape)} but the planner needs ({n_envs}, {planner.state_dim}): pass "
+                    "back the state returned by the previous predict() call for the same observations, or None"
                 )
         starts = None if episode_start is None else np.asarray(episode_start, dtype=bool).reshape(-1)
         if starts is not None and starts.any():  # nothing to send to the device on most steps
             reset = th.as_tensor(starts, device=self.device)
-            mean = th.where(reset.unsqueeze(1), space.initial_mean(n_envs, self.device), mean)
-        return mean
+            start = th.where(reset.unsqueeze(1), planner.initial_state(n_envs, self.device), start)
+        return start
 
     def step(self, obs: th.Tensor, state: np.ndarray | None = None, episode_start: np.ndarray | None = None) -> MPCStep:
         """
@@ -652,14 +856,14 @@ class MPCController:
         :param episode_start: per-env flags; True starts that env's plan afresh
         """
         internal = state is None and episode_start is None
-        plan = self.planner.plan(obs, self._start_mean(obs.shape[0], state, episode_start), self.generator)
+        plan = self.planner.plan(obs, self._start_state(obs.shape[0], state, episode_start), self.generator)
         if internal:
-            self.warm_start = plan.next_mean
+            self.warm_start = plan.next_state
         self._return_sum = self._return_sum + plan.elite_return.sum()
         self._plans += obs.shape[0]
         # one device-to-host transfer for the actions, the fallback flags and the warm starts
         actions = self.planner.to_env_units(plan.action)
-        host = th.cat([actions, plan.fallback.unsqueeze(1).float(), plan.next_mean], dim=1).cpu().numpy()
+        host = th.cat([actions, plan.fallback.unsqueeze(1).float(), plan.next_state], dim=1).cpu().numpy()
         n_actions = actions.shape[1]
         fallbacks = int((host[:, n_actions] > 0).sum())
         if fallbacks:
@@ -681,7 +885,7 @@ class MPCController:
         """Start the own warm start afresh for the envs whose episode ended."""
         if self.warm_start is not None and np.any(dones):
             reset = th.as_tensor(np.asarray(dones, dtype=bool), device=self.device)
-            fresh = self.planner.search_space.initial_mean(len(dones), self.device)
+            fresh = self.planner.initial_state(len(dones), self.device)
             self.warm_start = th.where(reset.unsqueeze(1), fresh, self.warm_start)
 
     def pop_statistics(self) -> dict[str, float | int]:

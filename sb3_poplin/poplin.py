@@ -16,9 +16,11 @@ period with MPC.
 
 from __future__ import annotations
 
+import inspect
 import io
 import math
 import pathlib
+from dataclasses import replace
 from collections.abc import Iterable, Sequence
 from typing import Any, ClassVar, TypeVar
 
@@ -70,6 +72,12 @@ class POPLIN(OffPolicyAlgorithm):
     :param init_var: initial CEM variance of the search space; ``None`` for the variant default
         (PETS and POPLIN-A 0.25, in scaled action units; POPLIN-P 0.1, in parameter units)
     :param cem_sampling: ``"truncated"`` (normal truncated at 2 sigma) or ``"clipped"``
+    :param optimizer: what searches: ``"cem"`` (PETS/POPLIN's CEM) or ``"icem"`` (iCEM's defaults: colored noise,
+        kept and shifted elites, population decay, the mean as a candidate, the best candidate executed); ``None``:
+        the variant's own (random shooting for ``"rs"``, else ``"cem"``)
+    :param optimizer_kwargs: iCEM's options, each on its own, over the optimizer's defaults
+        (:class:`sb3_poplin.planning.CEMOptions`: ``noise_beta``, ``keep_elites``, ``shift_elites``,
+        ``population_decay``, ``add_mean``, ``execute``), e.g. ``dict(noise_beta=0.25)``
     :param proposal: POPLIN-A only: ``"init"`` (policy rolled open-loop through the model once per plan)
         or ``"replan"`` (policy re-queried on every imagined state)
     :param noise: POPLIN-P only: ``"sep"`` (one parameter-noise block per planning step) or ``"uni"``
@@ -144,27 +152,9 @@ class POPLIN(OffPolicyAlgorithm):
     policy: POPLINPolicy
     mpc: MPCController
     distiller: Distiller | None
-    # settings (resolved by sb3_poplin.variants.resolve_settings; the planner's: variants.PLANNER_SETTINGS)
-    init_var: float
-    distillation: str | None
-    distill_imagined: bool
-    distill_window: int | None
-    avg_step_size: float
-    avg_update: str
-    distill_target: str
-    whitening: str
-    policy_net_arch: list[int] | None
-    policy_learning_rate: float
-    policy_epochs: int
-    policy_batch_size: int
-    ensemble_size: int
-    dynamics_net_arch: list[int]
-    model_epochs: int
-    model_batch_size: int
-    model_learning_rate: float
-    holdout_ratio: float
-    standardise_targets: bool
-    learned_reward: bool | None
+    # every setting, resolved (variants.resolve_settings): what the planner, the networks, the fit and the distillation
+    # are built from. A zip holds each under its own name in its data, as every release saved them
+    settings: variants.Settings
     # not keyword arguments: whether the dynamics model takes PETS's hooks (obs_preproc, targ_proc, obs_postproc)
     # from the task (False for a zip of a release before 0.3.0: saving.INTERNAL_BEFORE_0_3; the task's
     # model_input_exclude is taken either way), and the release that saved the zip this agent was loaded from (None
@@ -183,6 +173,8 @@ class POPLIN(OffPolicyAlgorithm):
         cem_alpha: float = 0.1,
         init_var: float | None = None,
         cem_sampling: str = "truncated",
+        optimizer: str | None = None,
+        optimizer_kwargs: dict[str, Any] | None = None,
         proposal: str = "init",
         noise: str = "sep",
         distillation: str | None = None,
@@ -221,7 +213,7 @@ class POPLIN(OffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
-        settings = {name: value for name, value in locals().items() if name in variants.SETTINGS}
+        given = {name: value for name, value in locals().items() if name in variants.SETTINGS}
         if isinstance(policy, str):
             self.variant = variants.variant(policy).name
         elif _init_setup_model:
@@ -230,10 +222,10 @@ class POPLIN(OffPolicyAlgorithm):
         if isinstance(env, str):
             env = gym.make(env, **task_env_kwargs(env))
         check_spaces(env)
-        if _init_setup_model:
-            settings = variants.resolve_settings(self.variant, settings)
-        self._control = settings.pop("control")
-        self.__dict__.update(settings)
+        if _init_setup_model:  # else (load) the zip's data brings the settings
+            self.settings = variants.resolve_settings(self.variant, given)
+            variants.check_control(self.variant, control)
+        self._control = control
         self.user_reward_fn = reward_fn
         self.user_termination_fn = termination_fn
         self._model_fitted = False
@@ -275,29 +267,43 @@ class POPLIN(OffPolicyAlgorithm):
         variants.check_control(self.variant, value)
         self._control = value
 
+    def _collect_settings(self) -> None:
+        """
+        Settings found as attributes (a zip's data, or settings given to ``load``) become :attr:`settings`, over the
+        agent's own or, for an agent being loaded, the constructor's defaults; resolved and validated again.
+        """
+        found = {key: self.__dict__.pop(key) for key in variants.SETTINGS if key in self.__dict__}
+        if not found and "settings" in self.__dict__:
+            return
+        start = self.settings.as_dict() if "settings" in self.__dict__ else DEFAULT_SETTINGS
+        self.settings = variants.resolve_settings(self.variant, {**start, **found})
+
     def _setup_model(self) -> None:
-        reward_fn, termination_fn, model_hooks, self.learned_reward = resolve_task(
-            self.task_id, self.user_reward_fn, self.user_termination_fn, self.learned_reward
+        self._collect_settings()
+        reward_fn, termination_fn, model_hooks, learned_reward = resolve_task(
+            self.task_id, self.user_reward_fn, self.user_termination_fn, self.settings.learned_reward
         )
+        self.settings = replace(self.settings, learned_reward=learned_reward)
+        settings = self.settings
         if not self.task_model_hooks:  # a zip of a release before 0.3.0: its model was trained without PETS's hooks
             model_hooks.update(obs_preproc=None, targ_proc=None, obs_postproc=None)
         self.policy_kwargs = dict(
-            ensemble_size=self.ensemble_size,
-            dynamics_net_arch=self.dynamics_net_arch,
+            ensemble_size=settings.ensemble_size,
+            dynamics_net_arch=settings.dynamics_net_arch,
             **model_hooks,
-            standardise_targets=self.standardise_targets,
-            learned_reward=self.learned_reward,
-            model_learning_rate=self.model_learning_rate,
-            policy_net_arch=self.policy_net_arch,
-            policy_learning_rate=self.policy_learning_rate,
-            discriminator_net_arch=list(variants.GAN_DISCRIMINATOR_NET_ARCH) if self.distillation == "gan" else None,
+            standardise_targets=settings.standardise_targets,
+            learned_reward=settings.learned_reward,
+            model_learning_rate=settings.model_learning_rate,
+            policy_net_arch=settings.policy_net_arch,
+            policy_learning_rate=settings.policy_learning_rate,
+            discriminator_net_arch=list(variants.GAN_DISCRIMINATOR_NET_ARCH) if settings.distillation == "gan" else None,
         )
         super()._setup_model()
         self.policy.set_training_mode(False)
         assert isinstance(self.action_space, spaces.Box)
         planner = variants.build_planner(
             self.variant,
-            variants.settings_of(self),
+            settings,
             self.policy.dynamics,
             self.policy.actor,
             reward_fn,
@@ -309,20 +315,20 @@ class POPLIN(OffPolicyAlgorithm):
         self.mpc.seed(self.seed)  # SB3 seeded everything else at the start of _setup_model
         self.distiller = None
         if self.policy.actor is not None:
-            assert isinstance(planner.search_space, PolicySearchSpace) and self.distillation is not None
+            assert isinstance(planner.search_space, PolicySearchSpace) and settings.distillation is not None
             self.distiller = Distiller(
-                self.distillation,
+                settings.distillation,
                 planner.search_space,
                 self.policy,
-                imagined=self.distill_imagined,
-                window=self.distill_window,
-                avg_step_size=self.avg_step_size,
-                epochs=self.policy_epochs,
-                batch_size=self.policy_batch_size,
-                noise_var=self.init_var,
-                avg_update=self.avg_update,
-                target=self.distill_target,
-                whitening=self.whitening,
+                imagined=settings.distill_imagined,
+                window=settings.distill_window,
+                avg_step_size=settings.avg_step_size,
+                epochs=settings.policy_epochs,
+                batch_size=settings.policy_batch_size,
+                noise_var=settings.init_var,
+                avg_update=settings.avg_update,
+                target=settings.distill_target,
+                whitening=settings.whitening,
             )
         self._collecting = False  # True while SB3's rollout collection asks for an action
 
@@ -408,10 +414,10 @@ class POPLIN(OffPolicyAlgorithm):
             actions,
             next_obs,
             self.policy.dynamics_optimizer,
-            rewards=rewards if self.learned_reward else None,
-            epochs=self.model_epochs,
-            batch_size=self.model_batch_size,
-            holdout_ratio=self.holdout_ratio,
+            rewards=rewards if self.settings.learned_reward else None,
+            epochs=self.settings.model_epochs,
+            batch_size=self.settings.model_batch_size,
+            holdout_ratio=self.settings.holdout_ratio,
             generator=self.mpc.generator,
         )
         distill_stats = {} if self.distiller is None else self.distiller.distill(self.mpc.generator)
@@ -489,10 +495,18 @@ class POPLIN(OffPolicyAlgorithm):
         """
         loaded_from = self.sb3_poplin_version
         self.sb3_poplin_version = saving.current_release()
+        flat = self.settings.as_dict()
+        # the zip's data holds every setting under its own name (readable, and as every release saved them)
+        self.__dict__.update(flat)
         try:
             super().save(path, exclude, include)
         finally:
             self.sb3_poplin_version = loaded_from
+            for key in flat:
+                del self.__dict__[key]
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "settings"]  # saved by name (see save)
 
     def set_parameters(
         self, load_path_or_dict: str | TensorDict, exact_match: bool = True, device: th.device | str = "auto"
@@ -508,3 +522,11 @@ class POPLIN(OffPolicyAlgorithm):
         # the MPC and distillation state are saved as state dicts (mpc.pth, distiller.pth), restored by set_parameters
         extra = ["mpc"] if self.distiller is None else ["mpc", "distiller"]
         return ["policy", *self.policy.optimizer_names(), *extra], []
+
+
+# the constructor's defaults of the settings: what a setting missing from a loaded zip starts from
+DEFAULT_SETTINGS: dict[str, Any] = {
+    key: parameter.default
+    for key, parameter in inspect.signature(POPLIN.__init__).parameters.items()
+    if key in variants.SETTINGS
+}

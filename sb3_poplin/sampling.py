@@ -143,17 +143,18 @@ class CandidateSampler:
         self.truncated = sampling == "truncated"
         self.workspace = Workspace()
 
-    def sample(self, mean: th.Tensor, std: th.Tensor, generator: th.Generator | None) -> th.Tensor:
+    def sample(self, mean: th.Tensor, std: th.Tensor, generator: th.Generator | None, count: int | None = None) -> th.Tensor:
         """
         :param mean: ``[n_envs, D]``
         :param std: ``[n_envs, D]``
         :param generator: the planner's random generator (CPU: only one draw from it, the chunks' base seed)
-        :return: the candidates ``[n_envs, N, D]`` (the reused buffer)
+        :param count: candidates per env (default: the population size)
+        :return: the candidates ``[n_envs, count, D]`` (the reused buffer)
         """
         if self.truncated:  # the noise is drawn divided by sqrt(2) (one pass fewer), the scale makes up for it
             std = std * math.sqrt(2.0)
         n_envs, dim = mean.shape
-        pop = self.population_size
+        pop = self.population_size if count is None else count
         z = self.workspace.get("candidates", n_envs * pop * dim, th.float32, mean.device).view(n_envs, pop, dim)
         if mean.device.type != "cpu":
             if self.truncated:

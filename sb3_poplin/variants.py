@@ -9,7 +9,7 @@ A variant is only a search space (:mod:`sb3_poplin.planning`) plus defaults: no 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 import torch as th
@@ -20,7 +20,9 @@ from sb3_poplin.distillation import AVG_UPDATES, DISTILL_TARGETS
 from sb3_poplin.dynamics import PROPAGATIONS, ProbabilisticEnsemble
 from sb3_poplin.planning import (
     CEM,
+    OPTIMIZERS,
     ActionSequences,
+    CEMOptions,
     MPCController,
     MPCPlanner,
     PolicyActionNoise,
@@ -33,7 +35,63 @@ from sb3_poplin.tasks import RewardFn, TerminationFn
 
 CONTROLS = ("mpc", "policy")
 GAN_DISCRIMINATOR_NET_ARCH = (64, 64)
-SearchSpaceFactory = Callable[[Mapping[str, Any], int, "PolicyNetwork | None"], SearchSpace]
+SearchSpaceFactory = Callable[["Settings", int, "PolicyNetwork | None"], SearchSpace]
+
+
+@dataclass(frozen=True)
+class Settings:
+    """
+    A POPLIN agent's settings, resolved (:func:`resolve_settings`: validated, every ``None`` default of the variant
+    filled in): what the planner (:func:`build_planner`), the networks, the model fit and the distillation are built
+    from. The meaning of each is in :class:`sb3_poplin.POPLIN`'s docstring.
+    """
+
+    # the planner
+    horizon: int
+    population_size: int
+    num_elites: int
+    cem_iterations: int
+    cem_alpha: float
+    init_var: float
+    cem_sampling: str
+    optimizer: str
+    optimizer_kwargs: dict[str, Any]
+    proposal: str
+    noise: str
+    propagation: str
+    num_particles: int
+    planning_dtype: str
+    max_batch_rows: int | None
+    # the policy network and its distillation
+    distillation: str | None
+    distill_imagined: bool
+    distill_window: int | None
+    avg_update: str
+    avg_step_size: float
+    distill_target: str
+    whitening: str
+    policy_net_arch: list[int] | None
+    policy_learning_rate: float
+    policy_epochs: int
+    policy_batch_size: int
+    # the dynamics model and its fit
+    ensemble_size: int
+    dynamics_net_arch: list[int]
+    model_epochs: int
+    model_batch_size: int
+    model_learning_rate: float
+    holdout_ratio: float
+    standardise_targets: bool
+    learned_reward: bool | None  # None until the task is known (POPLIN resolves it when it builds the model)
+
+    @property
+    def cem_options(self) -> CEMOptions:
+        """The CEM's options: the optimizer's defaults (``"cem"``: none, ``"icem"``: iCEM's), then ``optimizer_kwargs``."""
+        return replace(OPTIMIZERS.get(self.optimizer, CEMOptions()), **self.optimizer_kwargs)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The settings by name (as POPLIN keyword arguments, and as a zip's data holds them)."""
+        return asdict(self)
 
 
 @dataclass(frozen=True)
@@ -68,18 +126,18 @@ class Variant:
         return self.policy_net_arch is not None
 
 
-def _actions(settings: Mapping[str, Any], action_dim: int, policy: PolicyNetwork | None) -> SearchSpace:
-    return ActionSequences(settings["horizon"], action_dim, settings["init_var"])
+def _actions(settings: Settings, action_dim: int, policy: PolicyNetwork | None) -> SearchSpace:
+    return ActionSequences(settings.horizon, action_dim, settings.init_var)
 
 
-def _action_noise(settings: Mapping[str, Any], action_dim: int, policy: PolicyNetwork | None) -> SearchSpace:
+def _action_noise(settings: Settings, action_dim: int, policy: PolicyNetwork | None) -> SearchSpace:
     assert policy is not None
-    return PolicyActionNoise(settings["horizon"], action_dim, settings["init_var"], policy, settings["proposal"])
+    return PolicyActionNoise(settings.horizon, action_dim, settings.init_var, policy, settings.proposal)
 
 
-def _parameter_noise(settings: Mapping[str, Any], action_dim: int, policy: PolicyNetwork | None) -> SearchSpace:
+def _parameter_noise(settings: Settings, action_dim: int, policy: PolicyNetwork | None) -> SearchSpace:
     assert policy is not None
-    return PolicyParameterNoise(settings["horizon"], action_dim, settings["init_var"], policy, settings["noise"])
+    return PolicyParameterNoise(settings.horizon, action_dim, settings.init_var, policy, settings.noise)
 
 
 # the paper's demo settings: initial variance in scaled action units (0.25) or parameter units (0.1)
@@ -158,19 +216,22 @@ def variant(name: str) -> Variant:
     return VARIANTS[name]
 
 
-def resolve_settings(name: str, settings: dict[str, Any]) -> dict[str, Any]:
+def resolve_settings(name: str, settings: Mapping[str, Any]) -> Settings:
     """
     Validate POPLIN's settings for a variant and resolve every ``None`` default that depends on it. Choices that
     belong to one part (the CEM's sampling, the search spaces' ``proposal`` and ``noise``, the planner's dtype and
-    batch bound) are checked by that part when the planner is built.
+    batch bound) are checked by that part when the planner is built. Resolved settings resolve to themselves.
 
     :param name: the variant
     :param settings: POPLIN's keyword arguments of :data:`SETTINGS`, as given
-    :return: a new dict with the defaults filled in
+    :return: the resolved settings
     :raises ValueError: naming the setting, the value and what is accepted
     """
     spec = variant(name)
     s = dict(settings)
+    missing = set(SETTINGS) - set(s)
+    if missing:
+        raise ValueError(f"resolve_settings: settings {sorted(missing)} missing (pass every name of SETTINGS)")
     for key in ("policy_net_arch", "dynamics_net_arch"):
         s[key] = None if s[key] is None else list(s[key])
     if s["distill_target"] is None:
@@ -192,7 +253,7 @@ def resolve_settings(name: str, settings: dict[str, Any]) -> dict[str, Any]:
             f"num_particles ({s['num_particles']}) must be a positive multiple of ensemble_size ({s['ensemble_size']}) "
             "so that each member gets the same number of particles"
         )
-    check_control(name, s["control"])
+    _resolve_optimizer(name, spec, s)
     if not spec.has_policy:
         if s["distillation"] is not None:
             raise ValueError(
@@ -213,7 +274,41 @@ def resolve_settings(name: str, settings: dict[str, Any]) -> dict[str, Any]:
         s["policy_epochs"] = 40 if s["distillation"] == "gan" else 100
     if s["init_var"] is None:
         s["init_var"] = spec.init_var
-    return s
+    return Settings(**{key: s[key] for key in SETTINGS})
+
+
+def _resolve_optimizer(name: str, spec: Variant, s: dict[str, Any]) -> None:
+    """``optimizer`` and ``optimizer_kwargs``: the variant's optimizer by default, the options checked by name."""
+    accepted = [spec.optimizer] if spec.optimizer == "rs" else list(OPTIMIZERS)
+    if s["optimizer"] is None:
+        s["optimizer"] = spec.optimizer
+    if s["optimizer"] not in accepted:
+        raise ValueError(
+            f"optimizer={s['optimizer']!r} is not available for the {name!r} variant; accepted values: {accepted} "
+            "(or None for the variant's own)"
+        )
+    kwargs = {} if s["optimizer_kwargs"] is None else s["optimizer_kwargs"]
+    if not isinstance(kwargs, Mapping):
+        raise ValueError(f"optimizer_kwargs must be a dict of CEM options (or None), got {kwargs!r}")
+    if kwargs and spec.optimizer == "rs":
+        raise ValueError(
+            f"The 'rs' variant samples one round of uniform candidates and takes no optimizer_kwargs; got {dict(kwargs)}. "
+            "Use 'pets' with optimizer='icem' for iCEM over action sequences."
+        )
+    names = [field.name for field in fields(CEMOptions)]
+    unknown = sorted(set(kwargs) - set(names))
+    if unknown:
+        raise ValueError(f"Unknown optimizer_kwargs {unknown}; accepted: {names}")
+    s["optimizer_kwargs"] = dict(kwargs)
+    if spec.optimizer == "rs":
+        return
+    options = replace(OPTIMIZERS[s["optimizer"]], **kwargs)  # checks the values
+    if options.noise_beta > 0 and spec.search_space is _parameter_noise and s["noise"] == "uni":
+        raise ValueError(
+            f"noise_beta={options.noise_beta} colors the sampling noise along the horizon, but POPLIN-P with "
+            "noise='uni' has one parameter-noise block shared by all steps (no horizon axis): use noise='sep', or "
+            "white noise with optimizer_kwargs={'noise_beta': 0}"
+        )
 
 
 def _check_ranges(s: dict[str, Any], spec: Variant) -> None:
@@ -247,7 +342,7 @@ def check_control(name: str, control: str) -> None:
 
 def build_planner(
     name: str,
-    settings: Mapping[str, Any],
+    settings: Settings,
     dynamics: ProbabilisticEnsemble,
     policy: PolicyNetwork | None,
     reward_fn: RewardFn | None,
@@ -259,7 +354,7 @@ def build_planner(
     The planner of a variant: its search space, its optimizer, and the rollout through the model.
 
     :param name: the variant
-    :param settings: resolved settings (:func:`resolve_settings`), or an agent's (:func:`settings_of`)
+    :param settings: resolved settings (:func:`resolve_settings`, an agent's ``settings``)
     :param dynamics: the learned ensemble
     :param policy: the policy network (variants with one)
     :param reward_fn: the task reward, ``None`` when the model predicts it
@@ -270,14 +365,15 @@ def build_planner(
     spec = variant(name)
     optimizer: CEM | RandomShooting
     if spec.optimizer == "rs":
-        optimizer = RandomShooting(settings["population_size"])
+        optimizer = RandomShooting(settings.population_size)
     else:
         optimizer = CEM(
-            settings["population_size"],
-            settings["num_elites"],
-            settings["cem_iterations"],
-            settings["cem_alpha"],
-            settings["cem_sampling"],
+            settings.population_size,
+            settings.num_elites,
+            settings.cem_iterations,
+            settings.cem_alpha,
+            settings.cem_sampling,
+            settings.cem_options,
         )
     return MPCPlanner(
         model=dynamics,
@@ -285,12 +381,12 @@ def build_planner(
         optimizer=optimizer,
         reward_fn=reward_fn,
         termination_fn=termination_fn,
-        propagation=settings["propagation"],
-        num_particles=settings["num_particles"],
+        propagation=settings.propagation,
+        num_particles=settings.num_particles,
         action_low=th.as_tensor(action_space.low, dtype=th.float32, device=device),
         action_high=th.as_tensor(action_space.high, dtype=th.float32, device=device),
-        dtype=settings["planning_dtype"],
-        max_batch_rows=settings["max_batch_rows"],
+        dtype=settings.planning_dtype,
+        max_batch_rows=settings.max_batch_rows,
     )
 
 
@@ -303,6 +399,8 @@ PLANNER_SETTINGS = (
     "cem_alpha",
     "init_var",
     "cem_sampling",
+    "optimizer",
+    "optimizer_kwargs",
     "proposal",
     "noise",
     "propagation",
@@ -334,13 +432,8 @@ SETTINGS = (
     "holdout_ratio",
     "standardise_targets",
     "learned_reward",
-    "control",
 )
-
-
-def settings_of(agent: Any) -> dict[str, Any]:
-    """The planner settings of a POPLIN agent (its attributes of those names)."""
-    return {key: getattr(agent, key) for key in PLANNER_SETTINGS}
+assert SETTINGS == tuple(field.name for field in fields(Settings)), "SETTINGS and Settings must name the same fields"
 
 
 def replanner(agent: Any, name: str, seed: int | None = 0, **overrides: Any) -> MPCController:
@@ -361,10 +454,12 @@ def replanner(agent: Any, name: str, seed: int | None = 0, **overrides: Any) -> 
     actor = agent.policy.actor
     if spec.has_policy and actor is None:
         raise ValueError(f"The agent has no policy network, so it cannot plan as {name!r}: use 'pets' or 'rs'.")
-    settings = settings_of(agent)
-    if name != agent.variant:
-        settings["init_var"] = spec.init_var
-    settings.update(overrides)
+    changes: dict[str, Any] = {} if name == agent.variant else {"init_var": spec.init_var}
+    if spec.optimizer == "rs":
+        changes.update(optimizer="rs", optimizer_kwargs={})
+    elif agent.settings.optimizer == "rs":
+        changes["optimizer"] = "cem"  # a random-shooting agent searched as a CEM variant: plain CEM
+    settings = replace(agent.settings, **{**changes, **overrides})
     planner = build_planner(
         name,
         settings,

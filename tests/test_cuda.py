@@ -115,13 +115,13 @@ def test_plan_matches_the_cpu_when_both_draw_the_same_candidates(
     plans = {}
     for model, device in ((cpu, "cpu"), (gpu, "cuda")):
         candidates.reset()
-        mean = model.planner.search_space.initial_mean(2, th.device(device))
+        mean = model.planner.initial_state(2, th.device(device))
         plans[device] = model.planner.plan(obs.to(device), mean, model.mpc.generator)
     on_cpu, on_gpu = plans["cpu"], plans["cuda"]
     th.testing.assert_close(on_gpu.elites.cpu(), on_cpu.elites, rtol=0.0, atol=1e-6)  # the same elites, same order
     th.testing.assert_close(on_gpu.elite_return.cpu(), on_cpu.elite_return, rtol=1e-4, atol=1e-3)
     th.testing.assert_close(on_gpu.action.cpu(), on_cpu.action, rtol=0.0, atol=1e-4)
-    th.testing.assert_close(on_gpu.next_mean.cpu(), on_cpu.next_mean, rtol=0.0, atol=1e-4)
+    th.testing.assert_close(on_gpu.next_state.cpu(), on_cpu.next_state, rtol=0.0, atol=1e-4)
 
 
 @pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
@@ -137,7 +137,7 @@ def test_planning_makes_no_host_round_trip(
         **SMALL, **options,  # type: ignore[arg-type]
     )  # fmt: skip
     obs = observations().cuda()
-    mean = model.planner.search_space.initial_mean(2, obs.device)
+    mean = model.planner.initial_state(2, obs.device)
     model.planner.plan(obs, mean, model.mpc.generator)  # warm-up: cuBLAS handles, cached parameter copies
 
     def cpu_only(*args: object, **kwargs: object) -> None:

@@ -78,7 +78,7 @@ def test_demo_trains_saves_and_evaluates_both_modes_next_to_random(tmp_path: Pat
     assert json.loads((tmp_path / "summary.json").read_text()) == summary
     assert (tmp_path / "learning_curve.png").stat().st_size > 0
     loaded = POPLIN.load(tmp_path / "poplin-p_Pendulum-v1.zip")
-    assert loaded.variant == "poplin-p" and loaded.horizon == 3
+    assert loaded.variant == "poplin-p" and loaded.settings.horizon == 3
 
 
 def test_demo_keeps_pets_reachable(tmp_path: Path) -> None:

@@ -217,7 +217,7 @@ def test_runner_catches_a_broken_block(tmp_path: Path, monkeypatch: pytest.Monke
     page = tmp_path / "page.md"
     page.write_text(
         "```python\nfrom sb3_poplin import POPLIN\nmodel = POPLIN('pets', 'Pendulum-v1', horizon=30)\n```\n"
-        "```python\nassert model.horizon == 5 and model.population_size == 20  # the tiny settings won\n"
+        "```python\nassert model.settings.horizon == 5 and model.settings.population_size == 20  # the tiny settings won\n"
         "model.learn(100_000)\nassert model.num_timesteps <= 400\n```\n"
         f"```python\n{SKIP_COMMENT}\nraise RuntimeError('skipped')\n```\n"
     )

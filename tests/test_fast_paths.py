@@ -58,7 +58,7 @@ def reference_rollout(model, obs, z):
     returns = []
     for c in range(z.shape[0]):
         s, total = obs.clone(), 0.0
-        for t in range(model.horizon):
+        for t in range(model.settings.horizon):
             a = z[c, t : t + 1].clamp(-1, 1)  # one action dim
             x = (th.cat([s, a]) - dynamics.input_mean) / dynamics.input_std
             means = []

@@ -89,7 +89,7 @@ def parameter_noise_distiller(policy: PolicyNetwork, **kwargs) -> tuple[Distille
 def fake_plan(space: PolicyParameterNoise, n_envs: int, gen: th.Generator, failed: bool = False) -> PlanResult:
     solution = th.randn(n_envs, space.dim, generator=gen)
     fallback = th.full((n_envs,), failed)
-    return PlanResult(th.zeros(n_envs, 1), solution, th.zeros(n_envs), solution, solution.unsqueeze(1), fallback)
+    return PlanResult(th.zeros(n_envs, 1), solution, th.zeros(n_envs), solution, solution.unsqueeze(1), fallback, solution)
 
 
 @pytest.mark.parametrize("whitening", ["function", "plain"])
@@ -207,7 +207,7 @@ def test_original_settings_run_end_to_end_and_are_kept_by_save_load(tmp_path):
     model.save(tmp_path / "agent")
     loaded = POPLIN.load(tmp_path / "agent")
     for key, value in settings.items():
-        assert getattr(loaded, key) == value, key
+        assert getattr(loaded.settings, key) == value, key
     assert loaded.distiller.target == "planned" and loaded.distiller.whitening == "plain"
     obs = np.array([[0.3, 0.95, -1.0]], dtype=np.float32)
     start = np.ones(1, dtype=bool)
@@ -234,7 +234,7 @@ def test_bad_fidelity_settings_name_the_choices():
 def test_a_zip_of_release_0_1_0_keeps_its_release_behaviour():
     loaded = POPLIN.load(DATA / "legacy-0.1.0-poplin-p.zip", env=gym.make("Pendulum-v1"))
     for key, value in SETTINGS_BEFORE_0_3.items():
-        assert getattr(loaded, key) == value, key
+        assert getattr(loaded.settings, key) == value, key
     assert loaded.distiller.whitening == "function_from_raw" and loaded.policy.dynamics.standardise_targets
     with zipfile.ZipFile(DATA / "legacy-0.1.0-poplin-p.zip") as archive:
         assert "whitening" not in json.loads(archive.read("data"))
@@ -442,4 +442,6 @@ def test_the_defaults_are_the_ab_arms_they_were_chosen_from(config: str, arm: st
     policy = kwargs.pop("policy")
     settings = {**ab.V0_2, **ab.arm_settings(arm, policy)}
     by_default, explicit = tiny(policy, **kwargs), tiny(policy, **kwargs, **settings)
-    assert {key: getattr(by_default, key) for key in settings} == {key: getattr(explicit, key) for key in settings}
+    assert {key: getattr(by_default.settings, key) for key in settings} == {
+        key: getattr(explicit.settings, key) for key in settings
+    }

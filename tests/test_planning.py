@@ -240,6 +240,10 @@ def test_cem_variance_update_weights_only_finite_elites():
         dict(policy="poplin-a", proposal="replan", propagation="ts1", num_particles=4),
         dict(policy="poplin-p", noise="sep"),
         dict(policy="poplin-p", noise="uni", propagation="tsinf", num_particles=4),
+        # iCEM: decayed populations, the carried, kept (reused under expectation) and mean candidates
+        dict(policy="pets", optimizer="icem"),
+        dict(policy="poplin-a", proposal="replan", propagation="ts1", num_particles=4, optimizer="icem"),
+        dict(policy="poplin-p", noise="sep", optimizer="icem", optimizer_kwargs=dict(keep_elites=0.6, execute="mean")),
     ],
 )
 def test_plan_flops_count_the_rows_the_networks_see(kwargs):

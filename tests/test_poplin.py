@@ -254,7 +254,7 @@ def test_learned_reward_fallback_warns_for_unknown_envs():
     env = gym.make("MountainCarContinuous-v0")
     with pytest.warns(UserWarning, match="learns the reward.*termination_fn="):
         model = POPLIN("pets", env, seed=0, train_freq=(60, "step"), **TINY)  # a fit every 60 steps
-    assert model.learned_reward and model.planner.reward_fn is None
+    assert model.settings.learned_reward and model.planner.reward_fn is None
     seen = {}
     spy_on_rollouts(model.planner, seen)
     model.learn(120, reset_num_timesteps=True)

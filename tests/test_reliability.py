@@ -293,13 +293,13 @@ def test_diverged_candidates_rank_last():
     z_seen = {}
     optimize = model.planner.optimizer.optimize
 
-    def spy(evaluate, mean, var, constrain, generator=None):
+    def spy(evaluate, mean, var, constrain, generator=None, **options):
         def wrapped(z):
             returns = evaluate(z)
             z_seen.setdefault("returns", returns)
             return returns
 
-        return optimize(wrapped, mean, var, constrain, generator)
+        return optimize(wrapped, mean, var, constrain, generator, **options)
 
     model.planner.optimizer.optimize = spy
     with warnings.catch_warnings():

@@ -379,7 +379,11 @@ def test_variant_trains_plans_and_saves(tmp_path, name):
     model.control = "policy"
     model.save(path)
     loaded = POPLIN.load(path, device="cpu")
-    assert (loaded.variant, loaded.control, loaded.distillation) == (config["policy"], "policy", model.distillation)
+    assert (loaded.variant, loaded.control, loaded.settings.distillation) == (
+        config["policy"],
+        "policy",
+        model.settings.distillation,
+    )
     for (name, a), (_, b) in zip(model.policy.state_dict().items(), loaded.policy.state_dict().items(), strict=True):
         assert th.equal(a, b), name
     np.testing.assert_allclose(model.predict(obs)[0], loaded.predict(obs)[0], atol=1e-6)  # policy control
@@ -415,8 +419,19 @@ def test_bad_variant_settings(kwargs, message):
 def test_variant_defaults_are_the_papers():
     a = POPLIN("poplin-a", "Pendulum-v1", **TINY)
     p = POPLIN("poplin-p", "Pendulum-v1", **TINY)
-    assert (a.init_var, a.policy_net_arch, a.distillation, a.distill_imagined) == (0.25, [64, 64], "bc", True)
-    assert (p.init_var, p.policy_net_arch, p.distillation, p.distill_imagined) == (0.1, [32], "avg", False)
+    a_settings, p_settings = a.settings, p.settings
+    assert (a_settings.init_var, a_settings.policy_net_arch, a_settings.distillation, a_settings.distill_imagined) == (
+        0.25,
+        [64, 64],
+        "bc",
+        True,
+    )
+    assert (p_settings.init_var, p_settings.policy_net_arch, p_settings.distillation, p_settings.distill_imagined) == (
+        0.1,
+        [32],
+        "avg",
+        False,
+    )
     assert p.planner.search_space.dim == 5 * (3 * 32 + 32 + 32 + 1)
 
 
@@ -425,14 +440,15 @@ def test_distillation_data_and_model_target_defaults_follow_the_fidelity_ab():
     # actions from a 10 000-step window; every variant's model predicts raw targets (the README's fidelity A/B)
     a = POPLIN("poplin-a", "Pendulum-v1", **TINY)
     p = POPLIN("poplin-p", "Pendulum-v1", distillation="bc", **TINY)
-    assert (a.distill_target, a.distill_window, p.distill_target, p.distill_window) == ("executed", 10_000, "planned", None)
+    assert (a.settings.distill_target, a.settings.distill_window) == ("executed", 10_000)
+    assert (p.settings.distill_target, p.settings.distill_window) == ("planned", None)
     assert p.distiller is not None and (p.distiller.target, p.distiller.window) == ("planned", None)
     auto = POPLIN("poplin-a", "Pendulum-v1", distill_window="auto", distill_target=None, **TINY)
-    assert (auto.distill_target, auto.distill_window) == ("executed", 10_000)
+    assert (auto.settings.distill_target, auto.settings.distill_window) == ("executed", 10_000)
     explicit = POPLIN("poplin-p", "Pendulum-v1", distill_target="executed", distill_window=500, **TINY)
-    assert (explicit.distill_target, explicit.distill_window) == ("executed", 500)
+    assert (explicit.settings.distill_target, explicit.settings.distill_window) == ("executed", 500)
     for model in (a, p, POPLIN("pets", "Pendulum-v1", **TINY)):
-        assert model.standardise_targets is False and model.policy.dynamics.standardise_targets is False
+        assert model.settings.standardise_targets is False and model.policy.dynamics.standardise_targets is False
 
 
 def test_training_collects_with_mpc_even_in_policy_control():

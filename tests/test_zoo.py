@@ -234,3 +234,24 @@ def test_zoo_trains_enjoys_and_records_a_paper_env(tmp_path: Path, monkeypatch: 
         pytest.skip(f"no offscreen OpenGL for MuJoCo (MUJOCO_GL={os.environ['MUJOCO_GL']}): record_video not tested")
     run([*zoo_cli, "record_video", *play, "-o", "videos"], tmp_path)
     assert len(list((tmp_path / "videos").glob("*.mp4"))) == 1
+
+
+def test_optimizer_and_its_options_come_from_the_yml(tmp_path: Path) -> None:
+    """`optimizer: icem` and an `optimizer_kwargs` mapping in a hyperparameter file reach the planner's CEM."""
+    from sb3_poplin.planning import ICEM_OPTIONS
+
+    entry = dict(presets.load_config(presets.config_path("poplin", "cpu"))["Pendulum-v1"])
+    entry.update(optimizer="icem", optimizer_kwargs={"noise_beta": 0.25, "keep_elites": 0.5})
+    conf = tmp_path / "icem.yml"
+    conf.write_text(yaml.safe_dump({"Pendulum-v1": entry}))
+    hyperparams = zoo.read_hyperparameters("poplin", "Pendulum-v1", conf_file=str(conf))
+    assert hyperparams["optimizer"] == "icem" and dict(hyperparams["optimizer_kwargs"]) == entry["optimizer_kwargs"]
+    settings = {key: value for key, value in hyperparams.items() if key not in ("n_timesteps", "env_kwargs")}
+    settings["train_freq"] = tuple(settings["train_freq"])
+    model = POPLIN(env="Pendulum-v1", **settings)
+    assert model.planner.optimizer.options == ICEM_OPTIONS.__class__(
+        **{**ICEM_OPTIONS.__dict__, "noise_beta": 0.25, "keep_elites": 0.5}
+    )
+    # the same from the command line's -params (rl-zoo3 evaluates each value)
+    overrides = zoo.read_hyperparameters("poplin", "Pendulum-v1", hyperparams={"optimizer": "icem"})
+    assert overrides["optimizer"] == "icem"

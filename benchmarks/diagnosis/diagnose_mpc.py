@@ -72,11 +72,12 @@ class TrueModelPlanner:
             )
         self.task = make_task(model.task_id)
         if budget is None:
-            budget = (model.horizon, model.population_size, model.num_elites, model.cem_iterations)
+            s = model.settings
+            budget = (s.horizon, s.population_size, s.num_elites, s.cem_iterations)
         if len(budget) != 4 or min(budget) < 1:
             raise ValueError(f"budget must be four positive integers (horizon, population, elites, iterations), got {budget}")
         self.horizon, population, elites, iterations = (int(b) for b in budget)
-        self.cem = CEM(population, elites, iterations, model.cem_alpha)
+        self.cem = CEM(population, elites, iterations, model.settings.cem_alpha)
         self.to_env_units = model.planner.to_env_units  # scaled actions -> env units, from the agent's bounds
         self.action_dim = int(model.action_space.shape[0])
         # PETS's search space: its initial variance, its bound-aware variance cap and its shift
@@ -195,7 +196,7 @@ def main() -> None:
     true_return, true_time = true_model_episode(env, model, args.true_steps, args.seed, args.true_budget)
     ran_true = args.true_steps > 0
     mpc_return = float(episode.rewards[: args.true_steps].sum())
-    ks = sorted({0, 4, model.horizon - 1} & set(range(model.horizon)))
+    ks = sorted({0, 4, model.settings.horizon - 1} & set(range(model.settings.horizon)))
     summary = {
         "mpc_return": float(episode.rewards.sum()),
         "mpc_return_first_true_steps": mpc_return if ran_true else None,
@@ -209,14 +210,14 @@ def main() -> None:
     if args.no_record:
         return
     budget = (
-        f"{model.variant if args.search == 'own' else 'pets'} search, H {model.horizon}, "
-        f"pop {model.population_size}, elites {model.num_elites}, "
-        f"{model.cem_iterations} it"
+        f"{model.variant if args.search == 'own' else 'pets'} search, H {model.settings.horizon}, "
+        f"pop {model.settings.population_size}, elites {model.settings.num_elites}, "
+        f"{model.settings.cem_iterations} it"
     )
     if args.true_budget and ran_true:
         h_, p_, e_, i_ = args.true_budget
         budget += f"; true simulator: H {h_}, pop {p_}, elites {e_}, {i_} it"
-    h = model.horizon
+    h = model.settings.horizon
     command = (
         f"`python benchmarks/diagnosis/diagnose_mpc.py --model {args.model} --env {args.env} --steps {args.steps} "
         f"--true-steps {args.true_steps} --seed {args.seed}"

@@ -143,7 +143,7 @@ def bf16_effect(arch: tuple[int, ...], plans: int, device: str = "cpu") -> str:
             fp32 = planner.rollout(obs_t, z, None)
             planner.dtype = th.bfloat16
             bf16 = planner.rollout(obs_t, z, None)
-        k = model.num_elites
+        k = model.settings.num_elites
         overlaps.append(len(set(fp32[0].topk(k).indices.tolist()) & set(bf16[0].topk(k).indices.tolist())) / k)
         actions = []
         for dtype in (th.float32, th.bfloat16):

@@ -32,7 +32,9 @@ def pets_flops(model: POPLIN) -> float:
     dynamics = model.policy.dynamics
     widths = [dynamics.in_dim, *ARCH]
     row = sum(2 * a * b for a, b in itertools.pairwise(widths)) + 2 * ARCH[-1] * dynamics.out_dim
-    return float(model.cem_iterations * model.horizon * model.population_size * dynamics.ensemble_size * row)
+    return float(
+        model.settings.cem_iterations * model.settings.horizon * model.settings.population_size * dynamics.ensemble_size * row
+    )
 
 
 def main() -> None:

@@ -69,7 +69,7 @@ def model_error(agent: Any, episode: Episode, stride: int = 5, horizon: int | No
         the predicted k-step return) and ``real_return_abs`` (the mean absolute real k-step return, for scale)
     """
     planner, dynamics, device = agent.planner, agent.policy.dynamics, agent.device
-    horizon = agent.horizon if horizon is None else horizon
+    horizon = agent.settings.horizon if horizon is None else horizon
     obs = th.as_tensor(episode.obs, dtype=th.float32, device=device)
     actions = th.as_tensor(episode.actions, dtype=th.float32, device=device)
     rewards = th.as_tensor(episode.rewards, dtype=th.float32, device=device)

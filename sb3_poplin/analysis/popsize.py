@@ -37,7 +37,7 @@ def population_sweep(
     :param elite_fraction: elites as a fraction of the population; ``None``: the agent's fraction
     :return: one row per method and population: real and planned returns (mean over episodes, and per episode)
     """
-    fraction = agent.num_elites / agent.population_size if elite_fraction is None else elite_fraction
+    fraction = agent.settings.num_elites / agent.settings.population_size if elite_fraction is None else elite_fraction
     rows = []
     for method in methods:
         for population in populations:

@@ -46,8 +46,7 @@ def record_search(controller: MPCController, obs: th.Tensor) -> SearchRecord:
 
     planner = controller.planner
     obs = obs.reshape(1, -1)
-    mean = planner.search_space.initial_mean(1, obs.device)
-    plan = planner.plan(obs, mean, controller.generator, observer=observe)
+    plan = planner.plan(obs, planner.initial_state(1, obs.device), controller.generator, observer=observe)
     return SearchRecord(candidates, returns, float(plan.elite_return[0]))
 
 
