@@ -230,9 +230,9 @@ def test_parameter_noise_plan_executes_the_first_block_and_warm_starts(noise: st
         moved.add_to_parameters(solution[env, :w])
         assert th.allclose(plan.action[env], moved(obs[env]).clamp(-1.0, 1.0), atol=1e-6)
     if noise == "sep":  # the next step's blocks move up, a zero block comes last
-        assert th.equal(plan.next_mean, th.cat([solution[:, w:], th.zeros(2, w)], dim=1))
+        assert th.equal(plan.next_state, th.cat([solution[:, w:], th.zeros(2, w)], dim=1))
     else:  # the one block is carried over unchanged
-        assert th.equal(plan.next_mean, solution)
+        assert th.equal(plan.next_state, solution)
 
 
 @pytest.mark.parametrize("proposal", ["init", "replan"])
@@ -251,7 +251,7 @@ def test_action_noise_plan_executes_the_policy_action_plus_the_first_noise(propo
     with th.no_grad():
         expected = (policy(obs).clamp(-1.0, 1.0) + solution[:, :1]).clamp(-1.0, 1.0)
     assert th.allclose(plan.action, expected, atol=1e-6)
-    assert th.equal(plan.next_mean, th.cat([solution[:, 1:], th.zeros(2, 1)], dim=1))
+    assert th.equal(plan.next_state, th.cat([solution[:, 1:], th.zeros(2, 1)], dim=1))
 
 
 # ---------------------------------------------------------------- warm starts of a batch of envs
@@ -278,8 +278,8 @@ def test_episodes_ended_resets_the_own_warm_start_of_those_envs_only() -> None:
     controller.planner.plan = spy  # type: ignore[method-assign]
     step = controller.step(th.tensor([[0.1], [0.2], [0.3]]))
     assert th.equal(seen["mean"], expected)
-    assert th.equal(controller.warm_start, seen["plan"].next_mean)
-    np.testing.assert_array_equal(step.state, seen["plan"].next_mean.numpy())
+    assert th.equal(controller.warm_start, seen["plan"].next_state)
+    np.testing.assert_array_equal(step.state, seen["plan"].next_state.numpy())
 
 
 @pytest.mark.parametrize("variant", ["pets", "poplin-p"])

@@ -348,7 +348,7 @@ def first_planned_action(model, obs, solution):
         return solution[:, :1]
     if model.variant == "poplin-a":  # noise on the clipped policy action
         return actor(obs).clamp(-1.0, 1.0) + solution[:, :1]
-    moved = PolicyNetwork(4, 1, model.policy_net_arch)  # POPLIN-P: the network with its parameters moved by block 0
+    moved = PolicyNetwork(4, 1, model.settings.policy_net_arch)  # POPLIN-P: the network with its parameters moved by block 0
     moved.load_state_dict(actor.state_dict())
     moved.add_to_parameters(solution[0, : actor.num_params])
     return moved(obs)

@@ -353,7 +353,7 @@ def test_poplin_p_bc_distills_the_imagined_elite_actions(monkeypatch):
 
     monkeypatch.setattr(distillation_module, "behaviour_cloning", spy)
     model, before, planned = poplin_p_planned_episode(distillation="bc")
-    assert model.distill_target == "planned" and len(seen) == 1
+    assert model.settings.distill_target == "planned" and len(seen) == 1
     theta, w = before.flat_parameters().detach(), before.num_params
     rows = []  # (state, target): the planner's action, then every final elite's, of the network it planned with
     with th.no_grad():
