@@ -42,6 +42,9 @@ VARIANTS = [
     ("poplin-a", {"proposal": "replan"}),
     ("poplin-p", {"noise": "sep"}),
     ("poplin-p", {"noise": "uni"}),
+    # iCEM: colored noise (a matmul over the horizon), kept, carried and mean candidates, decayed populations
+    ("pets", {"optimizer": "icem"}),
+    ("poplin-p", {"noise": "sep", "optimizer": "icem", "optimizer_kwargs": {"noise_beta": 0.25}}),
 ]
 CEM_VARIANTS = [v for v in VARIANTS if v[0] != "rs"]
 
@@ -77,9 +80,16 @@ class SameCandidates:
         self.generator = th.Generator()
         source = self
 
-        def sample(sampler: CandidateSampler, mean: th.Tensor, std: th.Tensor, generator: th.Generator | None) -> th.Tensor:
+        def sample(
+            sampler: CandidateSampler,
+            mean: th.Tensor,
+            std: th.Tensor,
+            generator: th.Generator | None,
+            count: int | None = None,
+        ) -> th.Tensor:
             n_envs, dim = mean.shape
-            noise = th.randn((n_envs, sampler.population_size, dim), generator=source.generator).clamp(-2.0, 2.0)
+            rows = sampler.population_size if count is None else count
+            noise = th.randn((n_envs, rows, dim), generator=source.generator).clamp(-2.0, 2.0)
             return mean.unsqueeze(1) + std.unsqueeze(1) * noise.to(mean.device)
 
         monkeypatch.setattr(CandidateSampler, "sample", sample)  # CEM draws its candidates through it
