@@ -829,8 +829,9 @@ class MPCController:
 
     def _start_state(self, n_envs: int, state: np.ndarray | None, episode_start: np.ndarray | None) -> th.Tensor:
         planner = self.planner
-        if state is None and episode_start is None and self.warm_start is not None and self.warm_start.shape[0] == n_envs:
-            start = self.warm_start
+        own = self.warm_start
+        if state is None and episode_start is None and own is not None and own.shape == (n_envs, planner.state_dim):
+            start = own
         elif state is None:
             start = planner.initial_state(n_envs, self.device)
         else:
@@ -915,4 +916,6 @@ class MPCController:
             except (RuntimeError, TypeError):  # saved on another kind of device: keep the seeded generator
                 warnings.warn("The planner's random state was saved on another device and is not restored.", stacklevel=2)
         warm = state.get("warm_start")
-        self.warm_start = None if warm is None else warm.to(self.device)
+        # a warm start of another width (a zip loaded with another optimizer, e.g. optimizer="icem"): plan afresh
+        fits = warm is not None and warm.shape[-1] == self.planner.state_dim
+        self.warm_start = warm.to(self.device) if fits else None

@@ -250,3 +250,16 @@ def test_a_state_of_the_wrong_width_names_the_fix():
     model = tiny("pets", optimizer="icem")
     with pytest.raises(ValueError, match=r"state has shape \(1, 5\) but the planner needs \(1, 15\)"):
         model.predict(np.zeros(3, dtype=np.float32), state=np.zeros((1, 5), dtype=np.float32))
+
+
+def test_a_zip_loaded_with_icem_plans_afresh(tmp_path):
+    """The warm start of a CEM agent has no room for carried elites: loaded with optimizer="icem" it is dropped."""
+    model = tiny("pets")
+    obs = np.zeros((1, 3), dtype=np.float32)
+    model.predict(obs)
+    model.save(tmp_path / "agent")
+    loaded = POPLIN.load(tmp_path / "agent", optimizer="icem")
+    assert loaded.settings.optimizer == "icem" and loaded.mpc.warm_start is None
+    _, state = loaded.predict(obs)
+    assert state.shape == (1, loaded.planner.state_dim) == (1, 15)
+    assert POPLIN.load(tmp_path / "agent").mpc.warm_start is not None  # kept when it fits
