@@ -917,5 +917,6 @@ class MPCController:
                 warnings.warn("The planner's random state was saved on another device and is not restored.", stacklevel=2)
         warm = state.get("warm_start")
         # a warm start of another width (a zip loaded with another optimizer, e.g. optimizer="icem"): plan afresh
-        fits = warm is not None and warm.shape[-1] == self.planner.state_dim
-        self.warm_start = warm.to(self.device) if fits else None
+        if warm is not None and warm.shape[-1] != self.planner.state_dim:
+            warm = None
+        self.warm_start = None if warm is None else warm.to(self.device)
