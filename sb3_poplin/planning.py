@@ -72,6 +72,10 @@ class CEMOptions:
     :param add_mean: the final mean is one more candidate of the last iteration
     :param execute: ``"mean"``: the final mean's first step is executed (CEM); ``"best"``: the best candidate's of
         the last iteration
+    :param variance_cap: sample with the search space's bound-aware variance cap (PETS's action sequences: 2 sigma
+        inside the bounds; the other spaces have none); ``False``: the distribution's own variance, samples clipped to
+        the bounds (iCEM: with the cap, iCEM's candidates lose their extremes; measured in benchmarks/RESULTS.md,
+        "Planning with the true simulator")
     """
 
     noise_beta: float = 0.0
@@ -80,9 +84,10 @@ class CEMOptions:
     population_decay: float = 1.0
     add_mean: bool = False
     execute: str = "mean"
+    variance_cap: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("shift_elites", "add_mean"):
+        for name in ("shift_elites", "add_mean", "variance_cap"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"optimizer_kwargs[{name!r}] must be True or False, got {getattr(self, name)!r}")
         if not (isinstance(self.noise_beta, (int, float)) and 0.0 <= self.noise_beta <= 8.0):
@@ -106,7 +111,13 @@ class CEMOptions:
 
 # iCEM's defaults (Pinneri et al. 2020): what optimizer="icem" selects before the user's optimizer_kwargs
 ICEM_OPTIONS = CEMOptions(
-    noise_beta=2.0, keep_elites=0.3, shift_elites=True, population_decay=1.25, add_mean=True, execute="best"
+    noise_beta=2.0,
+    keep_elites=0.3,
+    shift_elites=True,
+    population_decay=1.25,
+    add_mean=True,
+    execute="best",
+    variance_cap=False,
 )
 OPTIMIZERS = {"cem": CEMOptions(), "icem": ICEM_OPTIONS}
 
@@ -246,7 +257,7 @@ class CEM:
         found = th.zeros(n_envs, dtype=th.bool, device=mean.device)
         kept: tuple[th.Tensor, th.Tensor] | None = None  # the previous iteration's best elites and their returns
         for i in range(self.iterations):
-            std = constrain_var(mean, var).sqrt()
+            std = (constrain_var(mean, var) if self.options.variance_cap else var).sqrt()
             n = self.samples(i)
             first_carries = i == 0 and self.carried > 0
             z = self._sample(mean, std, n + (self.carried if first_carries else 0), steps, generator)  # [n_envs, n, D]

@@ -186,7 +186,13 @@ def test_icem_in_one_word_and_each_option_over_it():
     model = tiny("pets", optimizer="icem", optimizer_kwargs={"noise_beta": 0.25})
     options = model.planner.optimizer.options
     assert options == CEMOptions(
-        noise_beta=0.25, keep_elites=0.3, shift_elites=True, population_decay=1.25, add_mean=True, execute="best"
+        noise_beta=0.25,
+        keep_elites=0.3,
+        shift_elites=True,
+        population_decay=1.25,
+        add_mean=True,
+        execute="best",
+        variance_cap=False,
     )
     assert tiny("pets").planner.optimizer.options == CEMOptions()  # plain CEM unless asked
 
@@ -263,3 +269,20 @@ def test_a_zip_loaded_with_icem_plans_afresh(tmp_path):
     _, state = loaded.predict(obs)
     assert state.shape == (1, loaded.planner.state_dim) == (1, 15)
     assert POPLIN.load(tmp_path / "agent").mpc.warm_start is not None  # kept when it fits
+
+
+@pytest.mark.parametrize("cap", [True, False])
+def test_the_variance_cap_is_an_option(cap):
+    """With the cap, PETS's 2-sigma-inside-the-bounds variance (a mean at 0.8 leaves room 0.1, std 0.1); without, 0.5."""
+    seen = []
+    cem = CEM(4000, 10, 1, sampling="clipped", options=CEMOptions(variance_cap=cap))
+
+    def constrain(mean: th.Tensor, var: th.Tensor) -> th.Tensor:
+        seen.append(True)
+        return th.minimum(var, ((1.0 - mean) / 2.0) ** 2)
+
+    recorder = Recorder(th.zeros(1, 2))
+    cem.optimize(recorder, th.full((1, 2), 0.8), th.full((1, 2), 0.25), constrain, th.Generator().manual_seed(2))
+    std = recorder.populations[0][0].std(dim=0)
+    np.testing.assert_allclose(std.numpy(), 0.1 if cap else 0.5, rtol=0.05)
+    assert bool(seen) == cap

@@ -83,3 +83,21 @@ def test_poplin_p_sep_avg_learns_pendulum():
     with th.no_grad():
         raw = model.policy.actor(states.to(model.device))
     assert (raw.abs() > 1).float().mean() < 0.5, "Avg drove the policy output into saturation"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", ["pets", "poplin-p"])
+def test_icem_learns_pendulum_with_a_quarter_of_the_population(variant):
+    """
+    optimizer="icem" (iCEM's defaults: colored noise beta 2, 30 % of the elites kept and shifted, decay 1.25, the mean
+    added, the best executed, no variance cap) at population 50 and 10 elites, a quarter of the CEM tests': 126
+    candidates per step against CEM's 600. Seed 0 measured -125.6 (PETS) and -124.7 (POPLIN-P Sep + Avg) over 10
+    episodes.
+    """
+    settings = {**CPU_SETTINGS, "population_size": CPU_SETTINGS["population_size"] // 4, "num_elites": 10}
+    model = POPLIN(variant, "Pendulum-v1", seed=0, optimizer="icem", **settings)
+    assert model.planner.optimizer.evaluations(reuse=True) == 50 + 40 + 32 + 3 + 1
+    model.learn(3000)
+    returns = evaluate(model)
+    print(f"{variant} iCEM Pendulum-v1 after 3000 steps: {np.mean(returns):.1f} {np.round(returns).tolist()}")
+    assert np.mean(returns) >= -250, returns

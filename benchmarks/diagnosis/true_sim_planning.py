@@ -54,37 +54,28 @@ from results_file import append_row, describe_machine
 SUPPORTED = (HalfCheetahEnv, PETSCheetahEnv)
 
 
-class UncappedActionSequences(ActionSequences):
-    """PETS's search space without its bound-aware variance cap (the samples are clipped to the bounds instead)."""
-
-    def constrain_var(self, mean: th.Tensor, var: th.Tensor) -> th.Tensor:
-        return var
-
-
-def parse_planner(text: str, elite_fraction: float) -> tuple[CEM, bool]:
+def parse_planner(text: str, elite_fraction: float) -> CEM:
     """
-    ``NAME:POPxIT[:key=value,...]`` -> the CEM it describes and whether PETS's variance cap applies. Keys: the
-    ``optimizer_kwargs`` (:class:`~sb3_poplin.planning.CEMOptions`), ``sampling`` (``truncated``, the default, or
-    ``clipped``) and ``cap`` (``on``, the default, or ``off``: PETS's space without its variance cap).
+    ``NAME:POPxIT[:key=value,...]`` -> the CEM it describes. Keys: the ``optimizer_kwargs``
+    (:class:`~sb3_poplin.planning.CEMOptions`, e.g. ``variance_cap=True``) and ``sampling`` (``truncated``, the
+    default, or ``clipped``).
     """
     parts = text.split(":")
     if len(parts) not in (2, 3) or parts[0] not in OPTIMIZERS or "x" not in parts[1]:
         raise ValueError(f"planner {text!r}: expected NAME:POPxIT[:key=value,...] with NAME one of {list(OPTIMIZERS)}")
     population, iterations = (int(v) for v in parts[1].split("x"))
     options: dict[str, Any] = {}
-    sampling, cap = "truncated", True
+    sampling = "truncated"
     if len(parts) == 3:
         for item in parts[2].split(","):
             key, value = item.split("=")
             if key == "sampling":
                 sampling = value
-            elif key == "cap":
-                cap = value == "on"
             else:
                 options[key] = ast.literal_eval(value) if value not in ("mean", "best") else value
     cem_options = replace(OPTIMIZERS[parts[0]], **options)
     elites = max(1, round(population * elite_fraction))
-    return CEM(population, elites, iterations, alpha=0.1, sampling=sampling, options=cem_options), cap
+    return CEM(population, elites, iterations, alpha=0.1, sampling=sampling, options=cem_options)
 
 
 class TrueSimulator:
@@ -157,12 +148,9 @@ class TrueSimulatorPlanner(MPCPlanner):
         return total.float().unsqueeze(0)
 
 
-def search_space(args: argparse.Namespace, action_dim: int, env_id: str, cap: bool = True) -> SearchSpace:
+def search_space(args: argparse.Namespace, action_dim: int, env_id: str) -> SearchSpace:
     if args.search == "pets":
-        space = ActionSequences if cap else UncappedActionSequences
-        return space(args.horizon, action_dim, VARIANTS["pets"].init_var)
-    if not cap:
-        raise ValueError("cap=off: only PETS's action sequences have a variance cap")
+        return ActionSequences(args.horizon, action_dim, VARIANTS["pets"].init_var)
     if args.policy == "init":
         policy = POPLIN("poplin-p", env_id, seed=0, device="cpu").policy.actor
     else:
@@ -207,10 +195,10 @@ def main() -> None:
     env = make_env(args.env)
     task = make_task(args.env)
     simulator = TrueSimulator(env)
+    space = search_space(args, int(env.action_space.shape[0]), args.env)
     results = []
     for label in args.planners:
-        cem, cap = parse_planner(label, args.elite_fraction)
-        space = search_space(args, int(env.action_space.shape[0]), args.env, cap)
+        cem = parse_planner(label, args.elite_fraction)
         planner = TrueSimulatorPlanner(simulator, space, cem, task, env.action_space)
         returns, times = [], []
         for start in range(args.starts):
