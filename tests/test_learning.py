@@ -1,4 +1,5 @@
-"""End-to-end learning on Pendulum-v1 from scratch on a CPU budget: PETS, and POPLIN-A with its distilled policy."""
+"""End-to-end learning on Pendulum-v1 from scratch on a CPU budget: PETS in the default run; POPLIN-A with its distilled
+policy, the other seeds and iCEM in the slow set (`make test-slow`)."""
 
 import numpy as np
 import pytest
@@ -29,6 +30,7 @@ def test_pets_learns_pendulum_within_3000_steps():
     assert mean >= -250, returns
 
 
+@pytest.mark.slow  # 355 s on an idle 2-core CI machine: the default run would pass 15 minutes with it
 def test_poplin_a_and_its_distilled_policy_learn_pendulum():
     """
     POPLIN-A at its defaults (Init proposals, BC distillation): MPC swings up, and the policy network distilled from
