@@ -6,6 +6,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import yaml
 
 
 def check_choice(name: str, value: Any, accepted: Sequence[str]) -> None:
@@ -44,3 +45,19 @@ def check_state_keys(owner: str, state: dict[str, Any], keys: Sequence[str], str
     missing = set(keys) - set(state)
     if strict and missing:
         raise KeyError(f"{owner} state lacks {sorted(missing)}")
+
+
+def parse_params(items: Sequence[str]) -> dict[str, Any]:
+    """
+    Command-line settings as a dict: ``KEY:VALUE`` strings, VALUE read as YAML (as rl-zoo3's ``-params``:
+    ``horizon:15``, ``dynamics_net_arch:[200,200]``).
+
+    :raises ValueError: for an item without a key or a ``:``
+    """
+    params = {}
+    for item in items:
+        key, sep, value = item.partition(":")
+        if not sep or not key:
+            raise ValueError(f"--params takes KEY:VALUE pairs (e.g. horizon:15), got {item!r}")
+        params[key] = yaml.safe_load(value)
+    return params

@@ -32,11 +32,11 @@ from typing import Any, NamedTuple
 import gymnasium as gym
 import numpy as np
 import torch as th
-import yaml
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_poplin.callbacks import ControlModesEvalCallback
+from sb3_poplin.common import parse_params
 from sb3_poplin.poplin import POPLIN
 from sb3_poplin.presets import config_path, load_config, poplin_settings
 from sb3_poplin.tasks import task_env_kwargs
@@ -238,17 +238,6 @@ def plot_curve(
     return True
 
 
-def _parse_params(items: Sequence[str]) -> dict[str, Any]:
-    """``KEY:VALUE`` strings (VALUE read as YAML, as rl-zoo3's ``-params``) as a dict."""
-    params = {}
-    for item in items:
-        key, sep, value = item.partition(":")
-        if not sep or not key:
-            raise ValueError(f"--params takes KEY:VALUE pairs (e.g. horizon:15), got {item!r}")
-        params[key] = yaml.safe_load(value)
-    return params
-
-
 def _summary_stats(returns: list[float]) -> dict[str, Any]:
     return {"returns": [float(r) for r in returns], "mean": float(np.mean(returns)), "std": float(np.std(returns))}
 
@@ -298,7 +287,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.steps < 1 or args.eval_episodes < 1 or args.curve_episodes < 1:
         parser.error("--steps, --eval-episodes and --curve-episodes must be >= 1")
 
-    config = cpu_config(args.env, args.variant, _parse_params(args.params))
+    config = cpu_config(args.env, args.variant, parse_params(args.params))
     th.set_num_threads(args.threads)
     os.makedirs(args.out, exist_ok=True)
     name = VARIANT_NAMES.get(config.variant, config.variant)

@@ -213,7 +213,7 @@ class POPLINPolicy(BasePolicy):
     :param lr_schedule: unused (SB3 interface); the networks have their own learning rates
     :param ensemble_size: members of the dynamics ensemble
     :param dynamics_net_arch: hidden layer widths of each member
-    :param model_input_exclude: observation indices the model and the policy do not see as inputs
+    :param model_input_exclude: observation indices the model (and, by default, the policy) does not see as inputs
     :param learned_reward: the ensemble also predicts the reward
     :param model_learning_rate: Adam learning rate of the dynamics model
     :param model_weight_decays: L2 coefficient per layer, ``None`` for the paper's
@@ -225,6 +225,8 @@ class POPLINPolicy(BasePolicy):
     :param obs_postproc: the inverse of ``targ_proc``; ``None``: ``obs + prediction``
     :param standardise_targets: the dynamics model standardises its targets (default ``False``, as ``POPLIN``'s
         since the fidelity A/B of issue 19: raw targets, as PETS's code)
+    :param policy_input_exclude: observation indices the policy network does not see; ``None``:
+        ``model_input_exclude``
     """
 
     def __init__(
@@ -245,6 +247,7 @@ class POPLINPolicy(BasePolicy):
         targ_proc: TargProc | None = None,
         obs_postproc: ObsPostproc | None = None,
         standardise_targets: bool = False,
+        policy_input_exclude: Sequence[int] | None = None,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=True)
         assert isinstance(observation_space, spaces.Box) and isinstance(action_space, spaces.Box)
@@ -252,6 +255,7 @@ class POPLINPolicy(BasePolicy):
         self.ensemble_size = ensemble_size
         self.dynamics_net_arch = list(dynamics_net_arch)
         self.model_input_exclude = list(model_input_exclude)
+        self.policy_input_exclude = list(model_input_exclude if policy_input_exclude is None else policy_input_exclude)
         self.learned_reward = learned_reward
         self.model_learning_rate = model_learning_rate
         self.model_weight_decays = None if model_weight_decays is None else list(model_weight_decays)
@@ -275,7 +279,7 @@ class POPLINPolicy(BasePolicy):
         self.actor: PolicyNetwork | None = None
         self.discriminator: Discriminator | None = None
         if self.policy_net_arch is not None:
-            self.actor = PolicyNetwork(obs_dim, action_dim, self.policy_net_arch, self.model_input_exclude)
+            self.actor = PolicyNetwork(obs_dim, action_dim, self.policy_net_arch, self.policy_input_exclude)
             self.actor_optimizer = th.optim.Adam(self.actor.parameters(), lr=policy_learning_rate)
         if self.discriminator_net_arch is not None:
             assert self.actor is not None, "the GAN discriminator needs a policy network"
@@ -297,6 +301,7 @@ class POPLINPolicy(BasePolicy):
             ensemble_size=self.ensemble_size,
             dynamics_net_arch=self.dynamics_net_arch,
             model_input_exclude=self.model_input_exclude,
+            policy_input_exclude=self.policy_input_exclude,
             learned_reward=self.learned_reward,
             model_learning_rate=self.model_learning_rate,
             model_weight_decays=self.model_weight_decays,

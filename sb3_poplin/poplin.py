@@ -36,6 +36,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, TensorD
 
 from sb3_poplin import saving, variants
 from sb3_poplin.distillation import Distiller
+from sb3_poplin.dynamics import FitResult
 from sb3_poplin.planning import MPCController, MPCPlanner, PolicySearchSpace
 from sb3_poplin.policies import POPLINPolicy
 from sb3_poplin.tasks import RewardFn, TerminationFn, check_spaces, env_id, max_episode_steps, resolve_task, task_env_kwargs
@@ -155,11 +156,11 @@ class POPLIN(OffPolicyAlgorithm):
     # every setting, resolved (variants.resolve_settings): what the planner, the networks, the fit and the distillation
     # are built from. A zip holds each under its own name in its data, as every release saved them
     settings: variants.Settings
-    # not keyword arguments: whether the dynamics model takes PETS's hooks (obs_preproc, targ_proc, obs_postproc)
-    # from the task (False for a zip of a release before 0.3.0: saving.INTERNAL_BEFORE_0_3; the task's
-    # model_input_exclude is taken either way), and the release that saved the zip this agent was loaded from (None
-    # for an agent made here; ``save`` records the running release, not this one)
-    task_model_hooks: bool
+    # not keyword arguments: the release whose task hooks (TaskSpec.model_hooks: the model's inputs and targets, the
+    # policy's inputs) the networks were built with (this release for an agent made here; a zip's keeps running as it
+    # was trained: saving.HOOKS_RELEASE_KEY), and the release that saved the zip this agent was loaded from (None for
+    # an agent made here; ``save`` records the running release, not this one)
+    model_hooks_release: str
     sb3_poplin_version: str | None
 
     def __init__(
@@ -229,7 +230,7 @@ class POPLIN(OffPolicyAlgorithm):
         self.user_reward_fn = reward_fn
         self.user_termination_fn = termination_fn
         self._model_fitted = False
-        self.task_model_hooks = True
+        self.model_hooks_release = saving.current_release()
         self.sb3_poplin_version = None
 
         default_train_freq = train_freq is None
@@ -280,13 +281,16 @@ class POPLIN(OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         self._collect_settings()
+        self.__dict__.pop("task_model_hooks", None)  # 0.3.0 zips' data (saving.check_saved_agent read it)
         reward_fn, termination_fn, model_hooks, learned_reward = resolve_task(
-            self.task_id, self.user_reward_fn, self.user_termination_fn, self.settings.learned_reward
+            self.task_id,
+            self.user_reward_fn,
+            self.user_termination_fn,
+            self.settings.learned_reward,
+            hooks_release=self.model_hooks_release,
         )
         self.settings = replace(self.settings, learned_reward=learned_reward)
         settings = self.settings
-        if not self.task_model_hooks:  # a zip of a release before 0.3.0: its model was trained without PETS's hooks
-            model_hooks.update(obs_preproc=None, targ_proc=None, obs_postproc=None)
         self.policy_kwargs = dict(
             ensemble_size=settings.ensemble_size,
             dynamics_net_arch=settings.dynamics_net_arch,
@@ -409,17 +413,7 @@ class POPLIN(OffPolicyAlgorithm):
         self.policy.set_training_mode(True)
         assert self.replay_buffer is not None
         obs, actions, next_obs, rewards = replay_transitions(self.replay_buffer, self.device)
-        result = self.policy.dynamics.fit(
-            obs,
-            actions,
-            next_obs,
-            self.policy.dynamics_optimizer,
-            rewards=rewards if self.settings.learned_reward else None,
-            epochs=self.settings.model_epochs,
-            batch_size=self.settings.model_batch_size,
-            holdout_ratio=self.settings.holdout_ratio,
-            generator=self.mpc.generator,
-        )
+        result = self.fit_dynamics(obs, actions, next_obs, rewards)
         distill_stats = {} if self.distiller is None else self.distiller.distill(self.mpc.generator)
         self.policy.set_training_mode(False)
         self._model_fitted = True
@@ -433,6 +427,31 @@ class POPLIN(OffPolicyAlgorithm):
             self.logger.record("train/model_holdout_mse", result.holdout_mse)
         self.logger.record("train/model_epochs", result.epochs)
         self.logger.record("train/n_transitions", int(obs.shape[0]))
+
+    def fit_dynamics(self, obs: th.Tensor, actions: th.Tensor, next_obs: th.Tensor, rewards: th.Tensor) -> FitResult:
+        """
+        One refit of the dynamics ensemble on the given transitions, as :meth:`train` does after every episode:
+        ``model_epochs`` epochs (early stopping with ``holdout_ratio``), the agent's persistent model optimizer and
+        its planner's random generator. ``python -m sb3_poplin.analysis model-quality`` replays a recorded dataset
+        through this method.
+
+        :param obs: ``[B, o]`` observations
+        :param actions: ``[B, a]`` actions scaled to [-1, 1] (as the replay buffer stores them)
+        :param next_obs: ``[B, o]`` next observations
+        :param rewards: ``[B]`` rewards (a target only with ``learned_reward``)
+        :return: the fit's :class:`~sb3_poplin.dynamics.FitResult`
+        """
+        return self.policy.dynamics.fit(
+            obs,
+            actions,
+            next_obs,
+            self.policy.dynamics_optimizer,
+            rewards=rewards if self.settings.learned_reward else None,
+            epochs=self.settings.model_epochs,
+            batch_size=self.settings.model_batch_size,
+            holdout_ratio=self.settings.holdout_ratio,
+            generator=self.mpc.generator,
+        )
 
     def learn(
         self: SelfPOPLIN,

@@ -27,16 +27,15 @@ import torch as th
 LEGACY_VERSION = "0.1.0"
 # the key of a zip's data (and the attribute of a loaded POPLIN) naming the release that saved it
 VERSION_KEY = "sb3_poplin_version"
-RELEASES_BEFORE_0_3 = (LEGACY_VERSION, "0.2.0")
 # settings added in 0.3.0, with the behaviour of the releases before: a zip without them continues as it was trained
 SETTINGS_BEFORE_0_3: dict[str, Any] = dict(
     whitening="function_from_raw", avg_update="add", distill_target="executed", standardise_targets=True
 )
-# what else 0.3.0 changed, held by attributes that are not POPLIN keyword arguments, with the behaviour of the
-# releases before; restored for their zips only (a 0.3.0 zip lacks these attributes too but keeps 0.3.0's behaviour).
-# ``task_model_hooks``: the model takes PETS's hooks (obs_preproc, targ_proc, obs_postproc) from the task, which
-# sb3_poplin/PETSCheetah-v0 has since 0.3.0; its earlier zips' models were trained without them
-INTERNAL_BEFORE_0_3: dict[str, Any] = dict(task_model_hooks=False)
+# the key of a zip's data (and the attribute of a loaded POPLIN) naming the release whose task hooks its model was
+# trained with (``TaskSpec.model_hooks``: PETSCheetah's model has PETS's hooks since 0.3.0). Zips from before it was
+# recorded: the release that saved them, or 0.2.0 for a zip that 0.3.0 saved with ``task_model_hooks`` False (a 0.1.0
+# or 0.2.0 agent saved again)
+HOOKS_RELEASE_KEY = "model_hooks_release"
 
 
 def current_release() -> str:
@@ -72,9 +71,9 @@ def check_saved_agent(path: str | pathlib.Path | io.BufferedIOBase) -> dict[str,
 
     :param path: what was given to ``POPLIN.load``
     :return: the attributes to restore with the agent that the zip does not hold: the settings its release did not
-        save, with that release's behaviour (:data:`SETTINGS_BEFORE_0_3`, and :data:`INTERNAL_BEFORE_0_3` for a
-        release before 0.3.0), and the release that saved it (``sb3_poplin_version``, :func:`saved_release`) when the
-        zip does not record it
+        save, with that release's behaviour (:data:`SETTINGS_BEFORE_0_3`), the release whose task hooks its model was
+        trained with (:data:`HOOKS_RELEASE_KEY`) and the release that saved it (``sb3_poplin_version``,
+        :func:`saved_release`) when the zip does not record them
     :raises FileNotFoundError: no file at ``path`` (nor ``path.zip``)
     :raises ValueError: not a zip, corrupted, saved by another algorithm, or incomplete
     """
@@ -123,8 +122,8 @@ def check_saved_agent(path: str | pathlib.Path | io.BufferedIOBase) -> dict[str,
         )
     release = saved_release(names, data)
     restored = {key: value for key, value in SETTINGS_BEFORE_0_3.items() if key not in data}
-    if release in RELEASES_BEFORE_0_3:
-        restored.update({key: value for key, value in INTERNAL_BEFORE_0_3.items() if key not in data})
+    if HOOKS_RELEASE_KEY not in data:
+        restored[HOOKS_RELEASE_KEY] = "0.2.0" if data.get("task_model_hooks") is False else release
     if VERSION_KEY not in data:
         restored[VERSION_KEY] = release
     return restored

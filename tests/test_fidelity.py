@@ -250,6 +250,7 @@ def test_obs_postproc_inverts_targ_proc_for_every_registered_task(task_id):
     obs, nxt = th.nan_to_num(obs.clamp(-50, 50)), th.nan_to_num(nxt.clamp(-50, 50))
     spec = make_task(task_id)
     hooks = spec.model_hooks()
+    assert hooks.pop("policy_input_exclude") == list(spec.model_input_exclude)  # no task hides other inputs yet
     model = ProbabilisticEnsemble(
         obs.shape[1], 1, ensemble_size=1, hidden_sizes=(4,), input_exclude=hooks.pop("model_input_exclude"), **hooks
     )

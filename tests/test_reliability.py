@@ -215,7 +215,7 @@ def test_a_pets_cheetah_zip_of_release_0_2_0_runs_its_model_without_the_hooks_of
     path = DATA / "legacy-0.2.0-pets-cheetah.zip"
     recorded = np.load(DATA / "legacy-0.2.0-pets-cheetah.npz")
     loaded = POPLIN.load(path)
-    assert loaded.sb3_poplin_version == "0.2.0" and loaded.task_model_hooks is False
+    assert loaded.sb3_poplin_version == "0.2.0" and loaded.model_hooks_release == "0.2.0"
     dynamics = loaded.policy.dynamics
     assert loaded.policy.model_hooks == NO_HOOKS and dynamics.hooks[0] is None
     assert (dynamics.in_dim, dynamics.out_dim) == (18 + 6, 18)
@@ -231,23 +231,36 @@ def test_a_pets_cheetah_zip_of_release_0_2_0_runs_its_model_without_the_hooks_of
     # saved again, it records this release and still runs without the hooks
     loaded.save(tmp_path / "resaved.zip")
     data = saved_data(tmp_path / "resaved.zip")
-    assert data["sb3_poplin_version"] == sb3_poplin.__version__ and data["task_model_hooks"] is False
+    assert data["sb3_poplin_version"] == sb3_poplin.__version__ and data["model_hooks_release"] == "0.2.0"
     resaved = POPLIN.load(tmp_path / "resaved.zip")
-    assert resaved.task_model_hooks is False and resaved.policy.model_hooks == NO_HOOKS
+    assert resaved.model_hooks_release == "0.2.0" and resaved.policy.model_hooks == NO_HOOKS
 
 
 def test_pets_cheetah_agents_of_release_0_3_0_keep_the_model_hooks(tmp_path):
     model = tiny("pets", CHEETAH)
-    assert model.task_model_hooks is True and model.policy.model_hooks == CHEETAH_HOOKS
+    assert model.model_hooks_release == sb3_poplin.__version__ and model.policy.model_hooks == CHEETAH_HOOKS
     model.save(tmp_path / "agent.zip")
     assert POPLIN.load(tmp_path / "agent.zip").policy.model_hooks == CHEETAH_HOOKS
 
     def unrecorded(data):  # saved by 0.3.0's behaviour before zips recorded their release and the hooks setting
-        del data["sb3_poplin_version"], data["task_model_hooks"]
+        del data["sb3_poplin_version"], data["model_hooks_release"]
 
     rewrite_data(tmp_path / "agent.zip", tmp_path / "unrecorded.zip", unrecorded)
     loaded = POPLIN.load(tmp_path / "unrecorded.zip")
     assert loaded.sb3_poplin_version == "0.3.0" and loaded.policy.model_hooks == CHEETAH_HOOKS
+
+    def as_saved_by_0_3_0(hooks):  # 0.3.0 recorded whether the model took the task's hooks, not their release
+        def rewrite(data):
+            del data["model_hooks_release"]
+            data.update(sb3_poplin_version="0.3.0", task_model_hooks=hooks)
+
+        return rewrite
+
+    for hooks, expected in ((True, CHEETAH_HOOKS), (False, NO_HOOKS)):  # False: a 0.2.0 agent 0.3.0 saved again
+        rewrite_data(tmp_path / "agent.zip", tmp_path / "by_0_3_0.zip", as_saved_by_0_3_0(hooks))
+        loaded = POPLIN.load(tmp_path / "by_0_3_0.zip")
+        assert loaded.policy.model_hooks == expected and loaded.model_hooks_release == ("0.3.0" if hooks else "0.2.0")
+        assert "task_model_hooks" not in vars(loaded)
 
 
 def test_new_zips_hold_the_mpc_and_distiller_state(tmp_path):

@@ -5,6 +5,8 @@
     python -m sb3_poplin.analysis popsize --model agent.zip --env HalfCheetah-v5 --populations 100 200 500 --output out/
     python -m sb3_poplin.analysis control --log-folder logs --env Pendulum-v1 --output out/
     python -m sb3_poplin.analysis model-error --model agent.zip --env HalfCheetah-v5
+    python -m sb3_poplin.analysis record --env HalfCheetah-v5 --variant pets --steps 15000 --output datasets/
+    python -m sb3_poplin.analysis model-quality --data datasets/X.npz --train-episodes 8 --hooks raw sincos
 
 Each command prints a table and writes it (``.md`` and ``.json``) with its figures into ``--output``.
 """
@@ -23,9 +25,12 @@ import torch as th
 
 from sb3_poplin.analysis.control import control_curves, plot_control_curves
 from sb3_poplin.analysis.model_error import mpc_episode, model_error
+from sb3_poplin.analysis.model_quality import TransitionDataset, model_quality, record
 from sb3_poplin.analysis.popsize import plot_population_sweep, population_sweep
 from sb3_poplin.analysis.surface import plot_surface, reward_surface
+from sb3_poplin.common import parse_params
 from sb3_poplin.poplin import POPLIN
+from sb3_poplin.presets import poplin_settings
 from sb3_poplin.tasks import make_env
 from sb3_poplin.variants import replanner
 
@@ -114,6 +119,72 @@ def model_error_command(args: argparse.Namespace, command: str) -> None:
     write_report(args.output, "model_error", table, {"episode_return": episode.total, **errors}, command)
 
 
+def dataset_name(env_id: str, variant: str, steps: int, seed: int) -> str:
+    """The file name ``record`` gives a dataset: ``<env>-<variant>-<steps>-seed<seed>.npz`` (``/`` in an id as ``-``)."""
+    return f"{env_id.replace('/', '-')}-{variant}-{steps}-seed{seed}.npz"
+
+
+def record_command(args: argparse.Namespace, command: str) -> None:
+    overrides = parse_params(args.params)
+    data = record(args.env, args.variant, args.steps, args.seed, args.budget, **overrides)
+    data.meta["command"] = command
+    path = os.path.join(args.output, dataset_name(args.env, args.variant, args.steps, args.seed))
+    data.save(path)
+    returns = data.meta["training_returns"]
+    print(f"{path}: {len(data.obs)} transitions, {data.num_episodes} episodes (returns {np.round(returns, 1).tolist()})")
+
+
+def hook_candidates(env_id: str, names: Sequence[str]) -> dict[str, dict[str, Any] | None]:
+    """The model hooks of ``--hooks``: ``task`` (the registered spec's) or a name of ``HOOK_CANDIDATES``."""
+    from sb3_poplin.tasks.mujoco import HOOK_CANDIDATES
+
+    known = HOOK_CANDIDATES.get(env_id, {})
+    chosen: dict[str, dict[str, Any] | None] = {}
+    for name in names:
+        if name == "task":
+            chosen[name] = None
+        elif name in known:
+            chosen[name] = known[name].model_hooks()
+        else:
+            raise SystemExit(f"--hooks {name!r}: {env_id} has the candidates {['task', *known]}.")
+    return chosen
+
+
+def model_quality_command(args: argparse.Namespace, command: str) -> None:
+    data = TransitionDataset.load(args.data)
+    if args.steps is not None:
+        data = data.first_steps(args.steps)
+    settings = poplin_settings(data.env_id, args.budget, **parse_params(args.params))
+    train = args.train_episodes or data.num_episodes - (args.heldout_episodes or 2)
+    rows, results = [], []
+    for name, hooks in hook_candidates(data.env_id, args.hooks).items():
+        for seed in args.seeds:
+            report = model_quality(data, train, args.heldout_episodes, settings, hooks, seed, stride=args.stride)
+            results.append(dict(hooks=name, seed=seed, **report))
+            rows.append(
+                [
+                    name,
+                    seed,
+                    *(report["state_error"][k] for k in (1, 5, 15, 30)),
+                    *(v for h in (15, 30) for v in (report["return_error"][h], report["return_correlation"][h])),
+                    report["nll"],
+                    report["mse"],
+                    report["fit_seconds"],
+                ]
+            )
+    header = ["hooks", "seed", "k=1", "k=5", "k=15", "k=30", "ret15 err", "ret15 corr", "ret30 err", "ret30 corr"]
+    header += ["NLL", "MSE", "fit s"]
+    table = markdown_table(header, rows)
+    heldout = data.num_episodes - train if args.heldout_episodes is None else args.heldout_episodes
+    table += (
+        f"\n\n{data.env_id}, {args.data}{f' (first {args.steps} steps)' if args.steps else ''}: fitted on episodes "
+        f"0-{train - 1} (a refit after each), measured on the next {heldout}; "
+        "state error in std units of each entry over the held-out states; NLL and MSE per target entry, target units"
+    )
+    stem = os.path.splitext(os.path.basename(args.data))[0]
+    write_report(args.output, f"model_quality_{stem}", table, results, command)
+
+
 def parser() -> argparse.ArgumentParser:
     top = argparse.ArgumentParser(
         prog="python -m sb3_poplin.analysis", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -144,6 +215,22 @@ def parser() -> argparse.ArgumentParser:
     p = common("model-error", "open-loop k-step model error on an MPC episode")
     p.add_argument("--steps", type=int, default=1000, help="length of the MPC episode")
     p.add_argument("--stride", type=int, default=5, help="start a prediction every n-th state")
+    p = common("record", "train with a packaged preset and write its transitions (a dataset for model-quality)", model=False)
+    p.add_argument("--variant", default="pets", choices=["pets", "poplin-p", "poplin-a", "rs"])
+    p.add_argument("--steps", type=int, required=True, help="env steps to train (and record)")
+    p.add_argument("--budget", default="cpu", choices=["cpu", "paper"], help="the preset: poplin_cpu.yml or poplin.yml")
+    p.add_argument("--params", nargs="*", default=[], help="settings replacing the preset's, KEY:VALUE (as rl-zoo3's -params)")
+    p = sub.add_parser("model-quality", help="fit model configurations on a dataset's episodes, measure them on later ones")
+    p.add_argument("--data", required=True, help="a dataset written by record")
+    p.add_argument("--steps", type=int, default=None, help="use the dataset's first steps (whole episodes), e.g. 5000")
+    p.add_argument("--train-episodes", type=int, default=None, help="default: all but --heldout-episodes (2)")
+    p.add_argument("--heldout-episodes", type=int, default=None, help="default: every episode after the training ones")
+    p.add_argument("--hooks", nargs="+", default=["task"], help="task (the registered spec's) or a HOOK_CANDIDATES name")
+    p.add_argument("--budget", default="cpu", choices=["cpu", "paper"], help="the preset whose model settings are used")
+    p.add_argument("--params", nargs="*", default=[], help="model settings replacing the preset's, KEY:VALUE")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="model seeds (one fit each)")
+    p.add_argument("--stride", type=int, default=5, help="start a prediction every n-th held-out state")
+    p.add_argument("--output", default=".", help="folder for the table")
     return top
 
 
@@ -152,6 +239,8 @@ COMMANDS = {
     "popsize": popsize_command,
     "control": control_command,
     "model-error": model_error_command,
+    "record": record_command,
+    "model-quality": model_quality_command,
 }
 
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import gymnasium as gym
 import torch as th
+from packaging.version import Version
 
 RewardFn = Callable[[th.Tensor, th.Tensor, th.Tensor], th.Tensor]
 TerminationFn = Callable[[th.Tensor, th.Tensor, th.Tensor], th.Tensor]
@@ -41,6 +42,11 @@ class TaskSpec:
     :param targ_proc: PETS's model-target hook, ``(obs, next_obs) -> target [..., t]``; ``None``: ``next_obs - obs``
     :param obs_postproc: its inverse, ``(obs, prediction) -> next_obs``; ``None``: ``obs + prediction``.
         ``obs_postproc(obs, targ_proc(obs, next_obs)) == next_obs`` must hold
+    :param policy_input_exclude: observation indices the policy network does not see; ``None``:
+        ``model_input_exclude`` (give it with an ``obs_preproc`` that drops the root position itself)
+    :param earlier_hooks: the model hooks of earlier releases, as ``(release, changes)`` pairs: a model trained by a
+        release before ``release`` used this spec's hooks with ``changes`` (keys of :meth:`model_hooks`), so that its
+        zip keeps running as it was trained (:meth:`model_hooks` with that release)
     :param description: one line for the task table (docs/tasks.md)
     """
 
@@ -52,22 +58,49 @@ class TaskSpec:
     obs_preproc: Callable[[th.Tensor], th.Tensor] | None = None
     targ_proc: Callable[[th.Tensor, th.Tensor], th.Tensor] | None = None
     obs_postproc: Callable[[th.Tensor, th.Tensor], th.Tensor] | None = None
+    policy_input_exclude: tuple[int, ...] | None = None
+    earlier_hooks: tuple[tuple[str, dict[str, Any]], ...] = ()
     description: str = ""
 
     def __post_init__(self) -> None:
         from sb3_poplin.dynamics import check_model_hooks
 
-        hooks = (self.model_input_exclude, self.obs_preproc, self.targ_proc, self.obs_postproc)
-        check_model_hooks(*hooks, owner=f"TaskSpec {self.env_id!r}: ")
+        owner = f"TaskSpec {self.env_id!r}: "
+        for release, changes in ((None, {}), *self.earlier_hooks):
+            unknown = sorted(set(changes) - set(HOOK_KEYS))
+            if unknown:
+                raise ValueError(f"{owner}earlier_hooks for release {release} changes {unknown}; the hooks are {HOOK_KEYS}.")
+            hooks = {**self.model_hooks(), **changes}
+            check_model_hooks(
+                hooks["model_input_exclude"], hooks["obs_preproc"], hooks["targ_proc"], hooks["obs_postproc"], owner=owner
+            )
 
-    def model_hooks(self) -> dict[str, Any]:
-        """The dynamics model's keyword arguments for this task's observation handling."""
-        return dict(
+    def model_hooks(self, release: str | None = None) -> dict[str, Any]:
+        """
+        The networks' keyword arguments for this task's observation handling (:data:`HOOK_KEYS`).
+
+        :param release: the release whose hooks a model was trained with (``POPLIN.model_hooks_release``); ``None``:
+            this release's
+        """
+        hooks: dict[str, Any] = dict(
             model_input_exclude=list(self.model_input_exclude),
             obs_preproc=self.obs_preproc,
             targ_proc=self.targ_proc,
             obs_postproc=self.obs_postproc,
+            policy_input_exclude=list(
+                self.model_input_exclude if self.policy_input_exclude is None else self.policy_input_exclude
+            ),
         )
+        if release is not None:
+            for until, changes in sorted(self.earlier_hooks, key=lambda pair: Version(pair[0])):
+                if Version(release) < Version(until):
+                    hooks.update({k: list(v) if k.endswith("exclude") else v for k, v in changes.items()})
+                    break
+        return hooks
+
+
+# what TaskSpec.model_hooks gives: the dynamics model's hooks and the policy network's excluded inputs
+HOOK_KEYS = ("model_input_exclude", "obs_preproc", "targ_proc", "obs_postproc", "policy_input_exclude")
 
 
 _REGISTRY: dict[str, TaskSpec] = {}

@@ -13,6 +13,7 @@ from __future__ import annotations
 import torch as th
 
 from sb3_poplin.tasks import TaskSpec, register_task, squared_norm
+from sb3_poplin.tasks.hooks import LocomotionHooks
 
 KEEP_POSITIONS = {"exclude_current_positions_from_observation": False}
 
@@ -295,3 +296,30 @@ for _spec in (
     ),
 ):
     register_task(_spec)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Candidate model hooks of the locomotion tasks (benchmarks: `python -m sb3_poplin.analysis model-quality --hooks`):
+# "raw" is what the registered specs do today (root positions hidden, every change predicted as a delta); "sincos"
+# feeds a wrapping root angle as its sine and cosine; "progress" predicts the root's change as a velocity, (x' - x) / dt
+HOOK_CANDIDATES: dict[str, dict[str, LocomotionHooks]] = {}
+
+
+def _candidates(
+    obs_dim: int, positions: tuple[int, ...], dt: float, angles: tuple[int, ...] = ()
+) -> dict[str, LocomotionHooks]:
+    candidates = dict(
+        raw=LocomotionHooks(obs_dim, exclude=positions),
+        progress=LocomotionHooks(obs_dim, exclude=positions, rates=positions, dt=dt),
+    )
+    if angles:
+        candidates["sincos"] = LocomotionHooks(obs_dim, exclude=positions, angles=angles)
+        candidates["sincos+progress"] = LocomotionHooks(obs_dim, exclude=positions, angles=angles, rates=positions, dt=dt)
+    return candidates
+
+
+HOOK_CANDIDATES["HalfCheetah-v5"] = _candidates(18, (HALF_CHEETAH_X,), HALF_CHEETAH_DT, angles=(2,))
+HOOK_CANDIDATES["Hopper-v5"] = _candidates(12, (HOPPER_X,), HOPPER_DT)
+HOOK_CANDIDATES["Walker2d-v5"] = _candidates(18, (WALKER_X,), WALKER_DT)
+HOOK_CANDIDATES["Swimmer-v5"] = _candidates(10, (SWIMMER_X, SWIMMER_Y), SWIMMER_DT, angles=(2,))
+HOOK_CANDIDATES["Ant-v5"] = _candidates(107, (ANT_X, ANT_Y), ANT_DT)
