@@ -1,0 +1,82 @@
+"""
+Write zips of sb3_poplin 0.3.0 on HalfCheetah-v5 for tests/test_reliability.py: the v5 tasks' model hooks may change
+after 0.3.0 (issue 34), and a 0.3.0 zip must keep loading and planning as it was trained.
+
+Run with the 0.3.0 code (commit 41334bf) on the path, from the repository root (the script's folder, not the working
+directory, comes first on ``sys.path``, so the checkout on ``PYTHONPATH`` is imported, not the editable install)::
+
+    mkdir /tmp/sb3p030 && git archive 41334bf | tar -x -C /tmp/sb3p030
+    PYTHONPATH=/tmp/sb3p030 python tests/data/make_legacy_0_3_0_zips.py tests/data
+
+It writes ``legacy-0.3.0-<variant>-half-cheetah.zip`` for PETS and POPLIN-P (tiny agents: one random episode, one
+model fit and distillation, a few planned steps; under 100 KB each) and ``legacy-0.3.0-<variant>-half-cheetah.npz``:
+observations (x kept, as the task makes the env), scaled actions, the next observations 0.3.0's model predicts for
+them (expectation over the members), the actions 0.3.0 plans for the observations right after loading its own zip
+and, for POPLIN-P, its policy network's actions.
+"""
+
+import sys
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+
+import sb3_poplin
+from sb3_poplin import POPLIN
+from sb3_poplin.tasks import make_env
+
+ENV = "HalfCheetah-v5"
+TINY = dict(horizon=4, population_size=16, num_elites=4, cem_iterations=2, ensemble_size=2, dynamics_net_arch=(16, 16))
+
+
+class StopAt(BaseCallback):
+    """Stop training after ``steps`` env steps."""
+
+    def __init__(self, steps: int) -> None:
+        super().__init__()
+        self.steps = steps
+
+    def _on_step(self) -> bool:
+        return self.num_timesteps < self.steps
+
+
+def states(count: int, seed: int) -> np.ndarray:
+    """Observations of a random-action episode: the first ``count`` after the reset."""
+    env: gym.Env = make_env(ENV)
+    env.action_space.seed(seed)
+    found = [env.reset(seed=seed)[0]]
+    while len(found) < count:
+        found.append(env.step(env.action_space.sample())[0])
+    return np.stack(found).astype(np.float32)
+
+
+def main(out: str) -> None:
+    th.set_num_threads(1)
+    with open(f"{sb3_poplin.__path__[0]}/version.txt") as file:
+        release = file.read().strip()
+    assert release == "0.3.0", f"run this with sb3_poplin 0.3.0 on PYTHONPATH, not {release}"
+    for variant in ("pets", "poplin-p"):
+        path = f"{out}/legacy-0.3.0-{variant}-half-cheetah.zip"
+        extra = dict(policy_net_arch=(8,), policy_epochs=2) if variant == "poplin-p" else {}
+        model = POPLIN(variant, ENV, seed=0, model_epochs=2, **TINY, **extra)
+        model.learn(2000, callback=StopAt(1010))  # a random episode, a model fit, 10 planned steps
+        model.save(path)
+
+        loaded = POPLIN.load(path)
+        obs = states(20, seed=1)[::5]  # 4 states along a random episode
+        actions = np.random.default_rng(2).uniform(-1.0, 1.0, (len(obs), 6)).astype(np.float32)
+        with th.no_grad():
+            predicted, _ = loaded.policy.dynamics.propagate(
+                th.as_tensor(obs).unsqueeze(1), th.as_tensor(actions).unsqueeze(1), "expectation"
+            )
+        planned = loaded.predict(obs, episode_start=np.ones(len(obs), dtype=bool))[0]
+        arrays = dict(obs=obs, actions=actions, predicted=predicted.squeeze(1).numpy(), planned=planned)
+        if variant == "poplin-p":
+            loaded.control = "policy"
+            arrays["policy_actions"] = loaded.predict(obs)[0]
+        np.savez(f"{out}/legacy-0.3.0-{variant}-half-cheetah.npz", **arrays)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])
