@@ -52,6 +52,8 @@ class PolicyNetwork(nn.Module):
     :param action_dim: action size
     :param net_arch: hidden widths (tanh)
     :param input_exclude: observation indices the policy does not see (e.g. the x position)
+    :param input_preproc: the policy's input features from raw observations ``[..., o] -> [..., f]`` (e.g. a task's
+        ``obs_preproc``, shared with the model); ``None``: the observation without ``input_exclude``
     """
 
     obs_index: th.Tensor
@@ -59,11 +61,25 @@ class PolicyNetwork(nn.Module):
     obs_var: th.Tensor
     obs_count: th.Tensor
 
-    def __init__(self, obs_dim: int, action_dim: int, net_arch: Sequence[int], input_exclude: Sequence[int] = ()) -> None:
+    def __init__(
+        self,
+        obs_dim: int,
+        action_dim: int,
+        net_arch: Sequence[int],
+        input_exclude: Sequence[int] = (),
+        input_preproc: ObsPreproc | None = None,
+    ) -> None:
         super().__init__()
+        if input_preproc is not None and len(input_exclude):
+            raise ValueError(
+                "PolicyNetwork takes either input_exclude or input_preproc (a TaskSpec's policy_input_exclude or "
+                "policy_obs_preproc), not both: drop the excluded indices inside the preproc."
+            )
         kept = [i for i in range(obs_dim) if i not in set(input_exclude)]
         self.register_buffer("obs_index", th.tensor(kept, dtype=th.long), persistent=False)
-        self.in_dim, self.action_dim = len(kept), action_dim
+        self.input_preproc = input_preproc
+        in_dim = len(kept) if input_preproc is None else int(input_preproc(th.zeros(1, obs_dim)).shape[-1])
+        self.in_dim, self.action_dim = in_dim, action_dim
         sizes = [self.in_dim, *net_arch, action_dim]
         self.shapes = list(pairwise(sizes))
         self.weights = nn.ParameterList(nn.Parameter(th.empty(a, b)) for a, b in self.shapes)
@@ -94,10 +110,14 @@ class PolicyNetwork(nn.Module):
             bias.add_(delta[offset : offset + bias.numel()])
             offset += bias.numel()
 
+    def features(self, obs: th.Tensor) -> th.Tensor:
+        """The policy's input before whitening: ``input_preproc(obs)``, or the observation without ``input_exclude``."""
+        return obs.index_select(-1, self.obs_index) if self.input_preproc is None else self.input_preproc(obs)
+
     def whiten(self, obs: th.Tensor) -> th.Tensor:
         """Whitened policy input from raw observations ``[..., o]``."""
         std = self.obs_var.clamp(min=MIN_WHITENING_VAR).sqrt()
-        return (obs.index_select(-1, self.obs_index) - self.obs_mean) / std
+        return (self.features(obs) - self.obs_mean) / std
 
     @th.no_grad()
     def set_parameters(self, flat: th.Tensor) -> None:
@@ -120,7 +140,7 @@ class PolicyNetwork(nn.Module):
         """
         if obs.shape[0] == 0:
             return
-        x = obs.index_select(-1, self.obs_index)
+        x = self.features(obs)
         reexpress = mode == "function_from_raw" or (mode == "function" and bool(self.obs_count > 0))
         old_std = self.obs_var.clamp(min=MIN_WHITENING_VAR).sqrt()
         old_mean = self.obs_mean.clone()
@@ -227,6 +247,8 @@ class POPLINPolicy(BasePolicy):
         since the fidelity A/B of issue 19: raw targets, as PETS's code)
     :param policy_input_exclude: observation indices the policy network does not see; ``None``:
         ``model_input_exclude``
+    :param policy_obs_preproc: the policy network's input features from raw observations (instead of
+        ``policy_input_exclude``); ``None``: the observation without ``policy_input_exclude``
     """
 
     def __init__(
@@ -248,6 +270,7 @@ class POPLINPolicy(BasePolicy):
         obs_postproc: ObsPostproc | None = None,
         standardise_targets: bool = False,
         policy_input_exclude: Sequence[int] | None = None,
+        policy_obs_preproc: ObsPreproc | None = None,
     ) -> None:
         super().__init__(observation_space, action_space, squash_output=True)
         assert isinstance(observation_space, spaces.Box) and isinstance(action_space, spaces.Box)
@@ -256,6 +279,7 @@ class POPLINPolicy(BasePolicy):
         self.dynamics_net_arch = list(dynamics_net_arch)
         self.model_input_exclude = list(model_input_exclude)
         self.policy_input_exclude = list(model_input_exclude if policy_input_exclude is None else policy_input_exclude)
+        self.policy_obs_preproc = policy_obs_preproc
         self.learned_reward = learned_reward
         self.model_learning_rate = model_learning_rate
         self.model_weight_decays = None if model_weight_decays is None else list(model_weight_decays)
@@ -279,7 +303,9 @@ class POPLINPolicy(BasePolicy):
         self.actor: PolicyNetwork | None = None
         self.discriminator: Discriminator | None = None
         if self.policy_net_arch is not None:
-            self.actor = PolicyNetwork(obs_dim, action_dim, self.policy_net_arch, self.policy_input_exclude)
+            self.actor = PolicyNetwork(
+                obs_dim, action_dim, self.policy_net_arch, self.policy_input_exclude, self.policy_obs_preproc
+            )
             self.actor_optimizer = th.optim.Adam(self.actor.parameters(), lr=policy_learning_rate)
         if self.discriminator_net_arch is not None:
             assert self.actor is not None, "the GAN discriminator needs a policy network"
@@ -302,6 +328,7 @@ class POPLINPolicy(BasePolicy):
             dynamics_net_arch=self.dynamics_net_arch,
             model_input_exclude=self.model_input_exclude,
             policy_input_exclude=self.policy_input_exclude,
+            policy_obs_preproc=self.policy_obs_preproc,
             learned_reward=self.learned_reward,
             model_learning_rate=self.model_learning_rate,
             model_weight_decays=self.model_weight_decays,

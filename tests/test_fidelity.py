@@ -251,6 +251,7 @@ def test_obs_postproc_inverts_targ_proc_for_every_registered_task(task_id):
     spec = make_task(task_id)
     hooks = spec.model_hooks()
     assert hooks.pop("policy_input_exclude") == list(spec.model_input_exclude)  # no task hides other inputs yet
+    assert hooks.pop("policy_obs_preproc") is None
     model = ProbabilisticEnsemble(
         obs.shape[1], 1, ensemble_size=1, hidden_sizes=(4,), input_exclude=hooks.pop("model_input_exclude"), **hooks
     )

@@ -329,13 +329,7 @@ def test_model_hooks_of_a_release_and_the_policy_inputs(monkeypatch):
 
     new = HOOK_CANDIDATES["HalfCheetah-v5"]["sincos+progress"]
     raw = dict(model_input_exclude=(0,), obs_preproc=None, targ_proc=None, obs_postproc=None, policy_input_exclude=(0,))
-    spec = replace(
-        make_task("HalfCheetah-v5"),
-        model_input_exclude=(),
-        policy_input_exclude=(0,),
-        earlier_hooks=(("9.9.9", raw),),
-        **{k: v for k, v in new.model_hooks().items() if k != "model_input_exclude"},
-    )
+    spec = replace(make_task("HalfCheetah-v5"), earlier_hooks=(("9.9.9", raw),), **new.model_hooks())
     assert spec.model_hooks()["obs_preproc"] == new.obs_preproc and spec.model_hooks("9.9.9")["obs_preproc"] is not None
     assert spec.model_hooks("9.9.8")["obs_preproc"] is None and spec.model_hooks("0.3.0")["model_input_exclude"] == [0]
     monkeypatch.setitem(tasks._REGISTRY, "HalfCheetah-v5", spec)
@@ -350,6 +344,33 @@ def test_model_hooks_of_a_release_and_the_policy_inputs(monkeypatch):
         replace(spec, earlier_hooks=(("1.0.0", dict(reward_fn=None)),))
     with pytest.raises(ValueError, match="Pass either input_exclude or obs_preproc"):
         replace(spec, earlier_hooks=(("1.0.0", dict(model_input_exclude=(0,))),))
+    with pytest.raises(ValueError, match=r"the policy takes either policy_input_exclude .* or policy_obs_preproc"):
+        replace(spec, policy_obs_preproc=new.obs_preproc)
+
+
+def test_the_policy_can_see_the_model_features(monkeypatch):
+    from dataclasses import replace
+
+    import sb3_poplin.tasks as tasks
+    from sb3_poplin import POPLIN
+    from sb3_poplin.policies import PolicyNetwork
+
+    hooks = HOOK_CANDIDATES["HalfCheetah-v5"]["sincos"]
+    monkeypatch.setitem(
+        tasks._REGISTRY, "HalfCheetah-v5", replace(make_task("HalfCheetah-v5"), **hooks.model_hooks(policy=True))
+    )
+    agent = POPLIN("poplin-p", "HalfCheetah-v5", seed=0, **TINY)
+    actor = agent.policy.actor
+    assert actor.in_dim == hooks.feature_dim == 18
+    obs = th.randn(7, 18)
+    obs[:, 2] += 6.0  # a cheetah that turned once: the same features as without the turn
+    turned = obs.clone()
+    turned[:, 2] -= 2 * math.pi
+    assert th.allclose(actor.features(obs), hooks.obs_preproc(obs)) and th.allclose(actor(obs), actor(turned), atol=1e-5)
+    actor.update_whitening(obs)
+    assert th.allclose(actor.obs_mean, hooks.obs_preproc(obs).mean(dim=0))
+    with pytest.raises(ValueError, match="either input_exclude or input_preproc"):
+        PolicyNetwork(18, 6, (8,), input_exclude=(0,), input_preproc=hooks.obs_preproc)
 
 
 def test_a_zip_keeps_the_hooks_it_was_trained_with(tmp_path, monkeypatch):

@@ -44,6 +44,8 @@ class TaskSpec:
         ``obs_postproc(obs, targ_proc(obs, next_obs)) == next_obs`` must hold
     :param policy_input_exclude: observation indices the policy network does not see; ``None``:
         ``model_input_exclude`` (give it with an ``obs_preproc`` that drops the root position itself)
+    :param policy_obs_preproc: the policy network's input features from raw observations (e.g. the model's
+        ``obs_preproc``); ``None``: the observation without ``policy_input_exclude``
     :param earlier_hooks: the model hooks of earlier releases, as ``(release, changes)`` pairs: a model trained by a
         release before ``release`` used this spec's hooks with ``changes`` (keys of :meth:`model_hooks`), so that its
         zip keeps running as it was trained (:meth:`model_hooks` with that release)
@@ -59,6 +61,7 @@ class TaskSpec:
     targ_proc: Callable[[th.Tensor, th.Tensor], th.Tensor] | None = None
     obs_postproc: Callable[[th.Tensor, th.Tensor], th.Tensor] | None = None
     policy_input_exclude: tuple[int, ...] | None = None
+    policy_obs_preproc: Callable[[th.Tensor], th.Tensor] | None = None
     earlier_hooks: tuple[tuple[str, dict[str, Any]], ...] = ()
     description: str = ""
 
@@ -74,6 +77,11 @@ class TaskSpec:
             check_model_hooks(
                 hooks["model_input_exclude"], hooks["obs_preproc"], hooks["targ_proc"], hooks["obs_postproc"], owner=owner
             )
+            if hooks["policy_obs_preproc"] is not None and hooks["policy_input_exclude"]:
+                raise ValueError(
+                    f"{owner}the policy takes either policy_input_exclude (by default model_input_exclude) or "
+                    "policy_obs_preproc, not both: pass policy_input_exclude=() and drop the indices inside the preproc."
+                )
 
     def model_hooks(self, release: str | None = None) -> dict[str, Any]:
         """
@@ -90,6 +98,7 @@ class TaskSpec:
             policy_input_exclude=list(
                 self.model_input_exclude if self.policy_input_exclude is None else self.policy_input_exclude
             ),
+            policy_obs_preproc=self.policy_obs_preproc,
         )
         if release is not None:
             for until, changes in sorted(self.earlier_hooks, key=lambda pair: Version(pair[0])):
@@ -99,8 +108,8 @@ class TaskSpec:
         return hooks
 
 
-# what TaskSpec.model_hooks gives: the dynamics model's hooks and the policy network's excluded inputs
-HOOK_KEYS = ("model_input_exclude", "obs_preproc", "targ_proc", "obs_postproc", "policy_input_exclude")
+# what TaskSpec.model_hooks gives: the dynamics model's hooks and the policy network's inputs
+HOOK_KEYS = ("model_input_exclude", "obs_preproc", "targ_proc", "obs_postproc", "policy_input_exclude", "policy_obs_preproc")
 
 
 _REGISTRY: dict[str, TaskSpec] = {}

@@ -114,7 +114,7 @@ def resolve_task(
     :param hooks_release: the release whose task hooks the model was trained with (a loaded zip's); None: this one's
     :return: the planner's reward function (None when the reward is learned), its termination function, the
         task's observation handling for the networks (:meth:`TaskSpec.model_hooks`: ``model_input_exclude``, the
-        model's ``obs_preproc`` / ``targ_proc`` / ``obs_postproc`` and ``policy_input_exclude``), and whether the
+        model's ``obs_preproc`` / ``targ_proc`` / ``obs_postproc`` and the policy's inputs), and whether the
         reward is learned
     """
     task = make_task(task_id) if task_id is not None and has_task(task_id) else None
@@ -130,7 +130,12 @@ def resolve_task(
             stacklevel=4,
         )
     no_hooks: dict[str, Any] = dict(
-        model_input_exclude=[], obs_preproc=None, targ_proc=None, obs_postproc=None, policy_input_exclude=[]
+        model_input_exclude=[],
+        obs_preproc=None,
+        targ_proc=None,
+        obs_postproc=None,
+        policy_input_exclude=[],
+        policy_obs_preproc=None,
     )
     hooks = task.model_hooks(hooks_release) if task else no_hooks
     return (None if learned_reward else reward_fn), termination_fn, hooks, learned_reward

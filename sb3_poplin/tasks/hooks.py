@@ -122,11 +122,18 @@ class LocomotionHooks:
         )
         return obs + delta
 
-    def model_hooks(self) -> dict[str, object]:
-        """The ``TaskSpec`` / ``ProbabilisticEnsemble`` keyword arguments of these hooks."""
+    def model_hooks(self, policy: bool = False) -> dict[str, object]:
+        """
+        The ``TaskSpec`` keyword arguments of these hooks.
+
+        :param policy: the policy network sees the model's input features too; else the raw observation without
+            ``exclude``
+        """
         return dict(
             model_input_exclude=(),
             obs_preproc=self.obs_preproc,
             targ_proc=self.targ_proc if self.rates else None,
             obs_postproc=self.obs_postproc if self.rates else None,
+            policy_input_exclude=() if policy else self.exclude,
+            policy_obs_preproc=self.obs_preproc if policy else None,
         )
