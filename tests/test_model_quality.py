@@ -149,10 +149,30 @@ def test_terminations_are_recorded_and_time_limits_are_not():
     assert data.terminated[ends].all() and data.terminated.sum() == len(ends)
 
 
+def test_a_checkpoint_replay_buffer_gives_the_same_dataset(tmp_path):
+    from sb3_poplin.resume import replay_buffer_arrays
+
+    agent = tiny(buffer_size=1000)
+    agent.learn(400)
+    arrays = replay_buffer_arrays(agent.replay_buffer)
+    # as if saved 50 steps into a third episode, which the dataset leaves out
+    arrays = {name: np.concatenate([rows, rows[:50]]) if rows.ndim else rows for name, rows in arrays.items()}
+    arrays["dones"][400:] = 0.0
+    np.savez(tmp_path / "replay_buffer.npz", **{**arrays, "pos": np.array(450)})
+    analysis_main(["record", "--env", "Pendulum-v1", "--from-checkpoint", str(tmp_path), "--output", str(tmp_path)])
+    loaded = TransitionDataset.load(str(tmp_path / "Pendulum-v1-pets-400-seed0.npz"))
+    direct = dataset_from_agent(agent)
+    assert loaded.num_episodes == 2 and loaded.meta["checkpoint"].endswith("replay_buffer.npz")
+    for name in ("obs", "actions", "rewards", "next_obs", "terminated", "episode"):
+        np.testing.assert_allclose(getattr(loaded, name), getattr(direct, name), rtol=0, atol=1e-6, err_msg=name)
+    with pytest.raises(SystemExit, match=r"--steps .* or --from-checkpoint"):
+        analysis_main(["record", "--env", "Pendulum-v1", "--output", str(tmp_path)])
+
+
 def test_dataset_from_agent_refuses_a_wrapped_buffer():
     agent = tiny(buffer_size=100)
     agent.learn(200)
-    with pytest.raises(ValueError, match="never wrapped around"):
+    with pytest.raises(ValueError, match="1 envs and is full"):
         dataset_from_agent(agent)
 
 

@@ -25,7 +25,7 @@ import torch as th
 
 from sb3_poplin.analysis.control import control_curves, plot_control_curves
 from sb3_poplin.analysis.model_error import mpc_episode, model_error
-from sb3_poplin.analysis.model_quality import TransitionDataset, model_quality, record
+from sb3_poplin.analysis.model_quality import TransitionDataset, dataset_from_replay, model_quality, record
 from sb3_poplin.analysis.popsize import plot_population_sweep, population_sweep
 from sb3_poplin.analysis.surface import plot_surface, reward_surface
 from sb3_poplin.common import parse_params
@@ -125,13 +125,31 @@ def dataset_name(env_id: str, variant: str, steps: int, seed: int) -> str:
 
 
 def record_command(args: argparse.Namespace, command: str) -> None:
-    overrides = parse_params(args.params)
-    data = record(args.env, args.variant, args.steps, args.seed, args.budget, **overrides)
+    if args.from_checkpoint:
+        data = checkpoint_dataset(args.from_checkpoint, args.env, dict(variant=args.variant, seed=args.seed))
+        name = dataset_name(args.env, args.variant, len(data.obs), args.seed)
+    elif args.steps is None:
+        raise SystemExit("record needs --steps (the env steps to train) or --from-checkpoint (a run's checkpoint)")
+    else:
+        data = record(args.env, args.variant, args.steps, args.seed, args.budget, **parse_params(args.params))
+        name = dataset_name(args.env, args.variant, args.steps, args.seed)
     data.meta["command"] = command
-    path = os.path.join(args.output, dataset_name(args.env, args.variant, args.steps, args.seed))
+    path = os.path.join(args.output, name)
     data.save(path)
-    returns = data.meta["training_returns"]
+    returns = [float(data.rewards[a:b].sum()) for a, b in data.episode_bounds()]
     print(f"{path}: {len(data.obs)} transitions, {data.num_episodes} episodes (returns {np.round(returns, 1).tolist()})")
+
+
+def checkpoint_dataset(path: str, env_id: str, meta: dict[str, Any]) -> TransitionDataset:
+    """The dataset of a training run's checkpoint (``sb3_poplin.resume``: its folder or its ``replay_buffer.npz``)."""
+    if os.path.isdir(path):
+        path = os.path.join(path, "replay_buffer.npz")
+    space = make_env(env_id).action_space
+    low, high = space.low.astype(np.float64), space.high.astype(np.float64)  # type: ignore[attr-defined]
+    with np.load(path) as arrays:
+        return dataset_from_replay(
+            dict(arrays), lambda scaled: low + 0.5 * (scaled + 1.0) * (high - low), env_id, {**meta, "checkpoint": path}
+        )
 
 
 def hook_candidates(env_id: str, names: Sequence[str]) -> dict[str, dict[str, Any] | None]:
@@ -217,7 +235,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--stride", type=int, default=5, help="start a prediction every n-th state")
     p = common("record", "train with a packaged preset and write its transitions (a dataset for model-quality)", model=False)
     p.add_argument("--variant", default="pets", choices=["pets", "poplin-p", "poplin-a", "rs"])
-    p.add_argument("--steps", type=int, required=True, help="env steps to train (and record)")
+    p.add_argument("--steps", type=int, default=None, help="env steps to train (and record)")
+    p.add_argument(
+        "--from-checkpoint",
+        default=None,
+        help="no training: the transitions of a run's checkpoint (its folder or replay_buffer.npz; --variant and --seed "
+        "only name the file)",
+    )
     p.add_argument("--budget", default="cpu", choices=["cpu", "paper"], help="the preset: poplin_cpu.yml or poplin.yml")
     p.add_argument("--params", nargs="*", default=[], help="settings replacing the preset's, KEY:VALUE (as rl-zoo3's -params)")
     p = sub.add_parser("model-quality", help="fit model configurations on a dataset's episodes, measure them on later ones")

@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
@@ -127,38 +127,53 @@ class TransitionDataset:
         return cls(header["env_id"], meta=header["meta"], **arrays)
 
 
-def dataset_from_agent(agent: Any, meta: dict[str, Any] | None = None) -> TransitionDataset:
+def dataset_from_replay(
+    arrays: Mapping[str, np.ndarray],
+    unscale: Callable[[np.ndarray], np.ndarray],
+    env_id: str,
+    meta: dict[str, Any] | None = None,
+) -> TransitionDataset:
     """
-    The transitions in a trained agent's replay buffer (one env, the buffer never wrapped around: ``buffer_size`` at
-    least the steps trained), cut at the last finished episode.
+    The transitions of a replay buffer's arrays (one env, never wrapped around), cut at the last finished episode.
 
-    :param agent: a ``POPLIN`` agent after ``learn``
+    :param arrays: ``sb3_poplin.resume.replay_buffer_arrays`` of the buffer (a checkpoint's ``replay_buffer.npz``)
+    :param unscale: the agent's ``policy.unscale_action`` (the buffer holds actions in [-1, 1])
+    :param env_id: the task
     :param meta: recorded with the data
     """
-    buffer = agent.replay_buffer
-    if buffer.n_envs != 1 or buffer.full:
+    if arrays["observations"].shape[1] != 1 or bool(arrays["full"]):
         raise ValueError(
-            "dataset_from_agent needs one env and a replay buffer that never wrapped around (buffer_size >= the "
-            f"steps trained); this one has {buffer.n_envs} envs and is {'full' if buffer.full else 'not full'}."
+            "A dataset needs one env and a replay buffer that never wrapped around (buffer_size >= the steps "
+            f"trained); this one has {arrays['observations'].shape[1]} envs and is {'full' if arrays['full'] else 'not full'}."
         )
-    n = buffer.pos
-    dones = buffer.dones[:n, 0].astype(bool)
+    dones = arrays["dones"][:, 0].astype(bool)
     if not dones.any():
         raise ValueError("The replay buffer holds no finished episode: train for at least one episode.")
     n = int(np.flatnonzero(dones)[-1]) + 1
-    timeouts = buffer.timeouts[:n, 0].astype(bool)
-    episode = np.concatenate([[0], np.cumsum(dones[: n - 1])]).astype(np.int64)
-    actions = agent.policy.unscale_action(buffer.actions[:n, 0])
+    dones = dones[:n]
+    timeouts = arrays["timeouts"][:n, 0].astype(bool)
     return TransitionDataset(
-        agent.task_id,
-        obs=buffer.observations[:n, 0].astype(np.float32),
-        actions=actions.astype(np.float32),
-        rewards=buffer.rewards[:n, 0].astype(np.float32),
-        next_obs=buffer.next_observations[:n, 0].astype(np.float32),
-        terminated=dones[:n] & ~timeouts,
-        episode=episode,
+        env_id,
+        obs=arrays["observations"][:n, 0].astype(np.float32),
+        actions=unscale(arrays["actions"][:n, 0]).astype(np.float32),
+        rewards=arrays["rewards"][:n, 0].astype(np.float32),
+        next_obs=arrays["next_observations"][:n, 0].astype(np.float32),
+        terminated=dones & ~timeouts,
+        episode=np.concatenate([[0], np.cumsum(dones[: n - 1])]).astype(np.int64),
         meta=dict(meta or {}),
     )
+
+
+def dataset_from_agent(agent: Any, meta: dict[str, Any] | None = None) -> TransitionDataset:
+    """
+    The transitions in a trained agent's replay buffer (see :func:`dataset_from_replay`).
+
+    :param agent: a ``POPLIN`` agent after ``learn``, one env, ``buffer_size`` at least the steps trained
+    :param meta: recorded with the data
+    """
+    from sb3_poplin.resume import replay_buffer_arrays
+
+    return dataset_from_replay(replay_buffer_arrays(agent.replay_buffer), agent.policy.unscale_action, agent.task_id, meta)
 
 
 def record(env_id: str, variant: str, steps: int, seed: int, budget: str = "cpu", **overrides: Any) -> TransitionDataset:
