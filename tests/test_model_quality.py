@@ -41,6 +41,17 @@ def test_locomotion_hooks_by_hand():
     assert LocomotionHooks(6, exclude=(0,)).model_hooks()["targ_proc"] is None
 
 
+def test_bounded_inputs_are_squashed_and_their_targets_are_not():
+    hooks = LocomotionHooks(4, exclude=(0,), bounded=(2, 3), bound=2.0)
+    obs = th.tensor([[7.0, 1.5, 0.1, -40.0]])
+    nxt = th.tensor([[8.0, 1.0, 30.0, -39.0]])
+    expected = [1.5, 2.0 * math.tanh(0.1 / 2.0), 2.0 * math.tanh(-40.0 / 2.0)]
+    assert th.allclose(hooks.obs_preproc(obs), th.tensor([expected]))
+    assert hooks.obs_preproc(obs)[0, 2] >= -2.0  # within the bound however large the velocity
+    assert th.allclose(hooks.targ_proc(obs, nxt), nxt - obs)  # the change is predicted unsquashed
+    assert th.allclose(hooks.obs_postproc(obs, hooks.targ_proc(obs, nxt)), nxt)
+
+
 @pytest.mark.parametrize(
     "kwargs, message",
     [
@@ -48,6 +59,9 @@ def test_locomotion_hooks_by_hand():
         (dict(angles=(1, 1)), "angles must hold distinct indices"),
         (dict(exclude=(2,), angles=(2,)), "both excluded and fed as sine and cosine"),
         (dict(rates=(0,), dt=0.0), "dt must be > 0"),
+        (dict(exclude=(1,), bounded=(1,)), "bounded and also excluded"),
+        (dict(angles=(2,), bounded=(2, 3)), "bounded and also excluded or fed as sine"),
+        (dict(bounded=(3,), bound=0.0), "bound must be > 0"),
     ],
 )
 def test_locomotion_hooks_refuse_bad_layouts(kwargs, message):

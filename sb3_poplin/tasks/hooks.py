@@ -10,7 +10,9 @@ ways, each a field of :class:`LocomotionHooks`:
 - ``angles``: a wrapping angle (the root pitch of a cheetah that flips) enters as its sine and cosine, so that a
   turn by 2 pi looks the same;
 - ``rates``: the change of these entries is predicted divided by ``dt`` -- the forward progress as a velocity, on
-  the scale of the other velocity entries instead of ``dt`` times smaller.
+  the scale of the other velocity entries instead of ``dt`` times smaller;
+- ``bounded``: these inputs enter squashed, ``bound * tanh(x / bound)`` (about ``x`` inside ``±bound / 2``), so that
+  the rare large velocities of a flailing body do not dominate the whitened input.
 
 ``obs_postproc(obs, targ_proc(obs, next_obs)) == next_obs`` up to float rounding. The hooks are a frozen dataclass,
 not closures, so that an agent that uses them pickles.
@@ -45,6 +47,8 @@ class LocomotionHooks:
     :param angles: indices that enter the model as their sine and cosine (not with ``exclude``)
     :param rates: indices whose change is predicted divided by ``dt``
     :param dt: seconds per env step (used with ``rates``)
+    :param bounded: indices whose input is squashed to ``(-bound, bound)`` (targets are unchanged)
+    :param bound: the squashing scale of ``bounded``
     """
 
     obs_dim: int
@@ -52,9 +56,11 @@ class LocomotionHooks:
     angles: tuple[int, ...] = ()
     rates: tuple[int, ...] = ()
     dt: float = 1.0
+    bounded: tuple[int, ...] = ()
+    bound: float = 10.0
 
     def __post_init__(self) -> None:
-        for name in ("exclude", "angles", "rates"):
+        for name in ("exclude", "angles", "rates", "bounded"):
             indices = getattr(self, name)
             if len(set(indices)) != len(indices) or any(not 0 <= i < self.obs_dim for i in indices):
                 raise ValueError(
@@ -65,13 +71,30 @@ class LocomotionHooks:
                 f"LocomotionHooks: indices {sorted(set(self.exclude) & set(self.angles))} are both excluded and fed as "
                 "sine and cosine; an index is one or the other."
             )
+        if set(self.bounded) & (set(self.exclude) | set(self.angles)):
+            raise ValueError(
+                f"LocomotionHooks: indices {sorted(set(self.bounded) & (set(self.exclude) | set(self.angles)))} are "
+                "bounded and also excluded or fed as sine and cosine; only a plain input can be bounded."
+            )
+        if self.bounded and not self.bound > 0:
+            raise ValueError(f"LocomotionHooks.bound must be > 0 with bounded indices, got {self.bound}.")
         if self.rates and not self.dt > 0:
             raise ValueError(f"LocomotionHooks.dt must be > 0 with rates (seconds per env step), got {self.dt}.")
 
     @cached_property
-    def _plain_runs(self) -> tuple[tuple[int, int], ...]:
+    def _plain_runs(self) -> tuple[tuple[int, int, bool], ...]:
+        """Runs ``(start, stop, is_bounded)`` of the plain (not excluded, not angle) inputs, in order."""
         skipped = set(self.exclude) | set(self.angles)
-        return _runs([i for i in range(self.obs_dim) if i not in skipped])
+        bounded = set(self.bounded)
+        runs: list[tuple[int, int, bool]] = []
+        for start, stop in _runs([i for i in range(self.obs_dim) if i not in skipped]):
+            for index in range(start, stop):
+                flag = index in bounded
+                if runs and runs[-1][1] == index and runs[-1][2] == flag:
+                    runs[-1] = (runs[-1][0], index + 1, flag)
+                else:
+                    runs.append((index, index + 1, flag))
+        return tuple(runs)
 
     @cached_property
     def _angle_runs(self) -> tuple[tuple[int, int], ...]:
@@ -98,9 +121,12 @@ class LocomotionHooks:
     def obs_preproc(self, obs: th.Tensor) -> th.Tensor:
         """
         :param obs: raw observations ``[..., obs_dim]``
-        :return: ``[plain entries, sin(angles), cos(angles)]`` ``[..., feature_dim]``
+        :return: ``[plain entries (bounded ones squashed), sin(angles), cos(angles)]`` ``[..., feature_dim]``
         """
-        parts = [obs[..., start:stop] for start, stop in self._plain_runs]
+        parts = [
+            self.bound * th.tanh(obs[..., start:stop] / self.bound) if flag else obs[..., start:stop]
+            for start, stop, flag in self._plain_runs
+        ]
         if self.angles:
             angles = th.cat([obs[..., start:stop] for start, stop in self._angle_runs], dim=-1)
             parts += [th.sin(angles), th.cos(angles)]

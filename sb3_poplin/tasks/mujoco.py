@@ -300,14 +300,20 @@ for _spec in (
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Candidate model hooks of the locomotion tasks (benchmarks: `python -m sb3_poplin.analysis model-quality --hooks`):
-# "raw" is what the registered specs do today (root positions hidden, every change predicted as a delta); "sincos"
-# feeds a wrapping root angle as its sine and cosine; "progress" predicts the root's change as a velocity, (x' - x) / dt
+# "raw" is what the registered specs did up to 0.3.0 (root positions hidden, every change predicted as a delta);
+# "sincos" feeds a wrapping root angle as its sine and cosine; "progress" predicts the root's change as a velocity,
+# (x' - x) / dt; "bounded" squashes the velocity inputs the env does not clip (10 tanh(v / 10)); "all" combines them
 HOOK_CANDIDATES: dict[str, dict[str, LocomotionHooks]] = {}
 
 
 def _candidates(
-    obs_dim: int, positions: tuple[int, ...], dt: float, angles: tuple[int, ...] = ()
+    obs_dim: int,
+    positions: tuple[int, ...],
+    dt: float,
+    angles: tuple[int, ...] = (),
+    velocities: tuple[int, ...] = (),
 ) -> dict[str, LocomotionHooks]:
+    """:param velocities: unclipped velocity entries of the observation (a "bounded" candidate where there are any)"""
     candidates = dict(
         raw=LocomotionHooks(obs_dim, exclude=positions),
         progress=LocomotionHooks(obs_dim, exclude=positions, rates=positions, dt=dt),
@@ -315,11 +321,20 @@ def _candidates(
     if angles:
         candidates["sincos"] = LocomotionHooks(obs_dim, exclude=positions, angles=angles)
         candidates["sincos+progress"] = LocomotionHooks(obs_dim, exclude=positions, angles=angles, rates=positions, dt=dt)
+    if velocities:
+        candidates["bounded"] = LocomotionHooks(obs_dim, exclude=positions, bounded=velocities)
+        candidates["all"] = LocomotionHooks(
+            obs_dim, exclude=positions, angles=angles, rates=positions, dt=dt, bounded=velocities
+        )
     return candidates
 
 
-HOOK_CANDIDATES["HalfCheetah-v5"] = _candidates(18, (HALF_CHEETAH_X,), HALF_CHEETAH_DT, angles=(2,))
-HOOK_CANDIDATES["Hopper-v5"] = _candidates(12, (HOPPER_X,), HOPPER_DT)
-HOOK_CANDIDATES["Walker2d-v5"] = _candidates(18, (WALKER_X,), WALKER_DT)
-HOOK_CANDIDATES["Swimmer-v5"] = _candidates(10, (SWIMMER_X, SWIMMER_Y), SWIMMER_DT, angles=(2,))
-HOOK_CANDIDATES["Ant-v5"] = _candidates(107, (ANT_X, ANT_Y), ANT_DT)
+HOOK_CANDIDATES["HalfCheetah-v5"] = _candidates(
+    18, (HALF_CHEETAH_X,), HALF_CHEETAH_DT, angles=(2,), velocities=tuple(range(9, 18))
+)
+HOOK_CANDIDATES["Hopper-v5"] = _candidates(12, (HOPPER_X,), HOPPER_DT)  # qvel clipped to [-10, 10] by the env
+HOOK_CANDIDATES["Walker2d-v5"] = _candidates(18, (WALKER_X,), WALKER_DT)  # the same
+HOOK_CANDIDATES["Swimmer-v5"] = _candidates(
+    10, (SWIMMER_X, SWIMMER_Y), SWIMMER_DT, angles=(2,), velocities=tuple(range(5, 10))
+)
+HOOK_CANDIDATES["Ant-v5"] = _candidates(107, (ANT_X, ANT_Y), ANT_DT, velocities=tuple(range(15, ANT_STATE_END)))
