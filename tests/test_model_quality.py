@@ -118,7 +118,8 @@ def test_progress_predicts_the_forward_velocity_the_reward_pays():
 # ------------------------------------------------------------------------------------------------ datasets
 @pytest.fixture(scope="module")
 def pendulum_data():
-    return record("Pendulum-v1", "pets", 600, 0, **{**TINY, "ensemble_size": 2})
+    # a preset buffer of exactly the steps recorded: record makes room for them without a wrap-around
+    return record("Pendulum-v1", "pets", 600, 0, **{**TINY, "ensemble_size": 2, "buffer_size": 600})
 
 
 def test_record_keeps_whole_episodes_in_env_units(pendulum_data, tmp_path):

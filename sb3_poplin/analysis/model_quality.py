@@ -194,7 +194,8 @@ def record(env_id: str, variant: str, steps: int, seed: int, budget: str = "cpu"
     path = config_path("poplin", budget)
     assert path is not None
     settings = poplin_settings(env_id, budget, policy=variant, **overrides)
-    settings["buffer_size"] = max(int(settings.get("buffer_size", 0)), steps)
+    # one row more than the steps: a buffer filled exactly is "full" and could not be told from one that wrapped
+    settings["buffer_size"] = max(int(settings.get("buffer_size", 0)), steps + 1)
     env = make_env(env_id, **load_config(path)[env_id].get("env_kwargs", {}))
     agent = POPLIN(env=env, seed=seed, **settings)
     start = time.perf_counter()
