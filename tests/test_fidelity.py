@@ -4,6 +4,7 @@ overwrite, GAN's real and fake in one space, planned-action targets, PETS's mode
 agents of earlier releases keeping their behaviour.
 """
 
+import math
 import json
 import zipfile
 from pathlib import Path
@@ -21,6 +22,7 @@ from sb3_poplin.dynamics import ProbabilisticEnsemble
 from sb3_poplin.planning import PlanResult, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, POPLINPolicy, PolicyNetwork
 from sb3_poplin.saving import SETTINGS_BEFORE_0_3
+from sb3_poplin.tasks.hooks import LocomotionHooks
 from sb3_poplin.tasks import TaskSpec, make_env, make_task, registered_tasks
 from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, configuration, original_code_settings
 from sb3_poplin.tasks.paper import (
@@ -250,7 +252,8 @@ def test_obs_postproc_inverts_targ_proc_for_every_registered_task(task_id):
     obs, nxt = th.nan_to_num(obs.clamp(-50, 50)), th.nan_to_num(nxt.clamp(-50, 50))
     spec = make_task(task_id)
     hooks = spec.model_hooks()
-    assert hooks.pop("policy_input_exclude") == list(spec.model_input_exclude)  # no task hides other inputs yet
+    # the policy sees the observation without the root positions (no task gives it the model's features yet)
+    assert hooks.pop("policy_input_exclude") == list(EXCLUDED_INPUTS.get(task_id, ()))
     assert hooks.pop("policy_obs_preproc") is None
     model = ProbabilisticEnsemble(
         obs.shape[1], 1, ensemble_size=1, hidden_sizes=(4,), input_exclude=hooks.pop("model_input_exclude"), **hooks
@@ -274,8 +277,14 @@ EXCLUDED_INPUTS = {
 }
 
 
+def hidden_positions(spec) -> tuple[int, ...]:
+    """The root positions a task hides from its model: by ``model_input_exclude`` or inside its locomotion hooks."""
+    hooks = getattr(spec.obs_preproc, "__self__", None)
+    return hooks.exclude if isinstance(hooks, LocomotionHooks) else spec.model_input_exclude
+
+
 def test_the_tasks_that_hide_positions_are_the_listed_ones():
-    hiding = {task_id: make_task(task_id).model_input_exclude for task_id in registered_tasks()}
+    hiding = {task_id: hidden_positions(make_task(task_id)) for task_id in registered_tasks()}
     assert {task_id: excluded for task_id, excluded in hiding.items() if excluded} == EXCLUDED_INPUTS
 
 
@@ -298,8 +307,10 @@ def test_excluded_positions_are_hidden_from_the_networks_and_their_delta_is_pred
     kept = [i for i in range(o.shape[1]) if i not in excluded]
     moved = o.clone()
     moved[:, excluded] += 100.0
-    # the model's input: the observation without the positions, then the action; the policy's: without them too
-    assert th.equal(dynamics.raw_input(o, a), th.cat([o[:, kept], a], dim=1))
+    # the model's input: the observation without the positions (or the task's features of it: HalfCheetah's by hand
+    # below), then the action; the policy's: without them too
+    features = o[:, kept] if make_task(task_id).obs_preproc is None else make_task(task_id).obs_preproc(o)
+    assert th.equal(dynamics.raw_input(o, a), th.cat([features, a], dim=1))
     assert th.equal(dynamics.raw_input(moved, a), dynamics.raw_input(o, a))
     with th.no_grad():
         assert th.equal(actor(moved), actor(o))
@@ -316,6 +327,23 @@ def test_excluded_positions_are_hidden_from_the_networks_and_their_delta_is_pred
     shift = th.zeros_like(o)
     shift[:, excluded] = 100.0
     assert th.allclose(from_moved[:, 0] - predicted[:, 0], shift, atol=1e-4)  # from wherever they are
+
+
+def test_half_cheetah_v5_model_sees_sin_cos_of_the_pitch_and_not_x_and_the_policy_sees_the_raw_rest():
+    model = tiny("poplin-p", "HalfCheetah-v5")
+    dynamics, actor = model.policy.dynamics, model.policy.actor
+    assert dynamics.in_dim == 17 + 1 + 6 and dynamics.out_dim == 18  # x dropped, pitch as two features
+    obs = th.randn(5, 18) * 3
+    action = th.rand(5, 6) * 2 - 1
+    expected = th.cat([obs[:, 1:2], obs[:, 3:], th.sin(obs[:, 2:3]), th.cos(obs[:, 2:3]), action], dim=1)
+    assert th.equal(dynamics.raw_input(obs, action), expected)
+    turned = obs.clone()
+    turned[:, 2] += 2 * math.pi  # a full turn of the pitch is the same posture to the model
+    assert th.allclose(dynamics.raw_input(turned, action), expected, atol=1e-5)
+    assert dynamics.training_target(obs, turned).equal(turned - obs)  # the change itself is predicted as a delta
+    assert actor.in_dim == 17  # the policy: the observation without x, the pitch as it is
+    with th.no_grad():
+        assert not th.allclose(actor(turned), actor(obs))
 
 
 def test_pets_cheetah_model_sees_sin_cos_of_the_angle_and_not_the_velocity():

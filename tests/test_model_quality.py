@@ -22,7 +22,7 @@ from sb3_poplin.analysis.model_quality import (
 )
 from sb3_poplin.tasks import make_env, make_task
 from sb3_poplin.tasks.hooks import LocomotionHooks
-from sb3_poplin.tasks.mujoco import HOOK_CANDIDATES
+from sb3_poplin.tasks.mujoco import HALF_CHEETAH_HOOKS, HOOK_CANDIDATES
 
 
 # ------------------------------------------------------------------------------------------------ hooks
@@ -317,21 +317,22 @@ def half_cheetah_dataset(episodes=3, steps=60, seed=0):
     return TransitionDataset("HalfCheetah-v5", **{k: np.array(v) for k, v in columns.items()})
 
 
-def test_the_raw_candidate_is_the_registered_task_and_the_swap_is_undone():
+def test_the_chosen_candidate_is_the_registered_task_and_the_swap_is_undone():
     data = half_cheetah_dataset()
     settings = dict(ensemble_size=2, dynamics_net_arch=(16, 16), model_epochs=2)
     kwargs = dict(ks=(1, 5), return_horizons=(5,), stride=10)
+    candidates = HOOK_CANDIDATES["HalfCheetah-v5"]
     registered = make_task("HalfCheetah-v5")
     task = model_quality(data, 2, 1, settings, None, 0, **kwargs)
-    raw = model_quality(data, 2, 1, settings, HOOK_CANDIDATES["HalfCheetah-v5"]["raw"].model_hooks(), 0, **kwargs)
-    progress = model_quality(data, 2, 1, settings, HOOK_CANDIDATES["HalfCheetah-v5"]["progress"].model_hooks(), 0, **kwargs)
+    chosen = model_quality(data, 2, 1, settings, candidates[HALF_CHEETAH_HOOKS].model_hooks(), 0, **kwargs)
+    raw = model_quality(data, 2, 1, settings, candidates["raw"].model_hooks(), 0, **kwargs)
     assert make_task("HalfCheetah-v5") is registered
     for key in ("state_error", "return_error", "nll", "mse"):
-        assert task[key] == raw[key], key
-    assert progress["return_error"] != raw["return_error"]  # another target: another model
-    with task_hooks("HalfCheetah-v5", HOOK_CANDIDATES["HalfCheetah-v5"]["sincos"].model_hooks()):
-        assert make_task("HalfCheetah-v5").obs_preproc is not None
-    assert make_task("HalfCheetah-v5").obs_preproc is None
+        assert task[key] == chosen[key], key
+    assert raw["return_error"] != chosen["return_error"]  # other inputs: another model
+    with task_hooks("HalfCheetah-v5", candidates["raw"].model_hooks()):
+        assert make_task("HalfCheetah-v5").obs_preproc == candidates["raw"].obs_preproc
+    assert make_task("HalfCheetah-v5").obs_preproc == candidates[HALF_CHEETAH_HOOKS].obs_preproc
 
 
 def test_commands_record_and_measure(tmp_path):
@@ -419,12 +420,16 @@ def test_a_zip_keeps_the_hooks_it_was_trained_with(tmp_path, monkeypatch):
     obs = th.as_tensor(make_env("HalfCheetah-v5").reset(seed=0)[0], dtype=th.float32).repeat(3, 1)
     actions = th.zeros(3, 6)
     before, _ = agent.policy.dynamics.propagate(obs.unsqueeze(1), actions.unsqueeze(1), "expectation")
-    # a later release gives the task the progress target: zips of this release keep the delta target
-    progress = HOOK_CANDIDATES["HalfCheetah-v5"]["progress"].model_hooks()
+    # a later release gives the task the progress target (the same inputs): zips of this release keep the delta target
+    progress = HOOK_CANDIDATES["HalfCheetah-v5"]["sincos+progress"].model_hooks()
+    now = {
+        k: v for k, v in make_task("HalfCheetah-v5").model_hooks().items() if k in ("obs_preproc", "targ_proc", "obs_postproc")
+    }
+    assert now["obs_preproc"] == HOOK_CANDIDATES["HalfCheetah-v5"]["sincos"].obs_preproc and now["targ_proc"] is None
     later = replace(
         make_task("HalfCheetah-v5"),
         **{**progress, "policy_input_exclude": (0,)},
-        earlier_hooks=(("9.9.9", dict(model_input_exclude=(0,), obs_preproc=None, targ_proc=None, obs_postproc=None)),),
+        earlier_hooks=(("9.9.9", dict(model_input_exclude=(), **now)),),
     )
     monkeypatch.setitem(tasks._REGISTRY, "HalfCheetah-v5", later)
     loaded = POPLIN.load(tmp_path / "raw.zip")

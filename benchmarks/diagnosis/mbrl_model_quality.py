@@ -16,11 +16,11 @@ The model is mbrl-lib's PETS half-cheetah configuration (``pets_halfcheetah.yaml
 7 members of 4 x 200 SiLU layers, 5 elites, fixed log-variance bounds, Adam with learning rate 2.8e-4 and weight decay
 1e-4, batch 32, 12 epochs with patience 12 and no validation split (the best weights by training score kept, the elites
 chosen by it), inputs normalised in double precision, refit after every episode with a persistent trainer, as its
-PETS example does. Per task the input hook and the targets are those of our registered task:
-``sb3_poplin/PETSCheetah-v0``: mbrl-lib's own half-cheetah ``preprocess_fn`` and the velocity predicted absolutely
-(``no_delta_list [0]``; the same as our task's hooks); ``HalfCheetah-v5`` (x kept): the x position dropped from the
-input, every entry predicted as a delta (our raw layout). The measured prediction is the elites' mean (our planner's
-expectation propagation averages all members).
+PETS example does. Per task the input hook and the targets are what mbrl-lib gives a user of the task:
+``sb3_poplin/PETSCheetah-v0``: its own half-cheetah ``preprocess_fn`` and the velocity predicted absolutely
+(``no_delta_list [0]``; the same as our task's hooks); ``HalfCheetah-v5`` (x kept), for which it has no hooks: the x
+position dropped from the input, every entry predicted as a delta (our "raw" candidate, the task's hooks before
+0.4.0). The measured prediction is the elites' mean (our planner's expectation propagation averages all members).
 """
 
 from __future__ import annotations

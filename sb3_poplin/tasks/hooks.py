@@ -1,5 +1,5 @@
 """
-Model hooks for locomotion observations, built from three choices instead of written per task.
+Model hooks for locomotion observations, built from four choices instead of written per task.
 
 The raw layout of the v5 locomotion tasks (made with the root position kept) is ``[root position(s), root height,
 root angle(s), joint angles, velocities]``. What the dynamics model sees and learns can differ from it in three
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import torch as th
 
@@ -148,7 +149,7 @@ class LocomotionHooks:
         )
         return obs + delta
 
-    def model_hooks(self, policy: bool = False) -> dict[str, object]:
+    def model_hooks(self, policy: bool = False) -> dict[str, Any]:
         """
         The ``TaskSpec`` keyword arguments of these hooks.
 

@@ -10,6 +10,8 @@ and the policy do not see those positions as inputs (``model_input_exclude``).
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch as th
 
 from sb3_poplin.tasks import TaskSpec, register_task, squared_norm
@@ -233,6 +235,66 @@ def pusher_reward(obs: th.Tensor, action: th.Tensor, next_obs: th.Tensor) -> th.
     return -0.5 * near - dist - 0.1 * squared_norm(action)
 
 
+# ---------------------------------------------------------------------------------------------------------------------
+# Candidate model hooks of the locomotion tasks (benchmarks: `python -m sb3_poplin.analysis model-quality --hooks`):
+# "raw" is what the registered specs did up to 0.3.0 (root positions hidden, every change predicted as a delta);
+# "sincos" feeds a wrapping root angle as its sine and cosine; "progress" predicts the root's change as a velocity,
+# (x' - x) / dt; "bounded" squashes the velocity inputs the env does not clip (10 tanh(v / 10)); "all" combines them
+HOOK_CANDIDATES: dict[str, dict[str, LocomotionHooks]] = {}
+
+
+def _candidates(
+    obs_dim: int,
+    positions: tuple[int, ...],
+    dt: float,
+    angles: tuple[int, ...] = (),
+    velocities: tuple[int, ...] = (),
+) -> dict[str, LocomotionHooks]:
+    """:param velocities: unclipped velocity entries of the observation (a "bounded" candidate where there are any)"""
+    candidates = dict(
+        raw=LocomotionHooks(obs_dim, exclude=positions),
+        progress=LocomotionHooks(obs_dim, exclude=positions, rates=positions, dt=dt),
+    )
+    if angles:
+        candidates["sincos"] = LocomotionHooks(obs_dim, exclude=positions, angles=angles)
+        candidates["sincos+progress"] = LocomotionHooks(obs_dim, exclude=positions, angles=angles, rates=positions, dt=dt)
+    if velocities:
+        candidates["bounded"] = LocomotionHooks(obs_dim, exclude=positions, bounded=velocities)
+        candidates["all"] = LocomotionHooks(
+            obs_dim, exclude=positions, angles=angles, rates=positions, dt=dt, bounded=velocities
+        )
+    return candidates
+
+
+HOOK_CANDIDATES["HalfCheetah-v5"] = _candidates(
+    18, (HALF_CHEETAH_X,), HALF_CHEETAH_DT, angles=(2,), velocities=tuple(range(9, 18))
+)
+HOOK_CANDIDATES["Hopper-v5"] = _candidates(12, (HOPPER_X,), HOPPER_DT)  # qvel clipped to [-10, 10] by the env
+HOOK_CANDIDATES["Walker2d-v5"] = _candidates(18, (WALKER_X,), WALKER_DT)  # the same
+HOOK_CANDIDATES["Swimmer-v5"] = _candidates(
+    10, (SWIMMER_X, SWIMMER_Y), SWIMMER_DT, angles=(2,), velocities=tuple(range(5, 10))
+)
+HOOK_CANDIDATES["Ant-v5"] = _candidates(107, (ANT_X, ANT_Y), ANT_DT, velocities=tuple(range(15, ANT_STATE_END)))
+
+
+def _raw_hooks(positions: tuple[int, ...]) -> dict[str, Any]:
+    """The hooks of the locomotion tasks before 0.4.0 ("raw"): root positions hidden from both networks, deltas."""
+    return dict(
+        model_input_exclude=positions,
+        obs_preproc=None,
+        targ_proc=None,
+        obs_postproc=None,
+        policy_input_exclude=positions,
+        policy_obs_preproc=None,
+    )
+
+
+# HalfCheetah-v5's hooks, chosen by the held-out predicted-return error on recorded PETS and POPLIN-P data
+# (benchmarks/RESULTS.md, "Model hooks of the v5 locomotion tasks"); whether the policy network sees them too
+HALF_CHEETAH_HOOKS = "sincos"
+HALF_CHEETAH_POLICY_FEATURES = False
+
+
 for _spec in (
     TaskSpec(
         env_id="InvertedPendulum-v5",
@@ -244,8 +306,10 @@ for _spec in (
         env_id="HalfCheetah-v5",
         reward_fn=half_cheetah_reward,
         env_kwargs=dict(KEEP_POSITIONS),
-        model_input_exclude=(HALF_CHEETAH_X,),
-        description="x kept in obs[0] for the forward reward, hidden from the model; never terminates",
+        **HOOK_CANDIDATES["HalfCheetah-v5"][HALF_CHEETAH_HOOKS].model_hooks(policy=HALF_CHEETAH_POLICY_FEATURES),
+        earlier_hooks=(("0.4.0", _raw_hooks((HALF_CHEETAH_X,))),),
+        description="x kept in obs[0] for the forward reward, hidden from the model; the pitch as its sine and cosine "
+        "to the model; never terminates",
     ),
     TaskSpec(
         env_id="Hopper-v5",
@@ -296,45 +360,3 @@ for _spec in (
     ),
 ):
     register_task(_spec)
-
-
-# ---------------------------------------------------------------------------------------------------------------------
-# Candidate model hooks of the locomotion tasks (benchmarks: `python -m sb3_poplin.analysis model-quality --hooks`):
-# "raw" is what the registered specs did up to 0.3.0 (root positions hidden, every change predicted as a delta);
-# "sincos" feeds a wrapping root angle as its sine and cosine; "progress" predicts the root's change as a velocity,
-# (x' - x) / dt; "bounded" squashes the velocity inputs the env does not clip (10 tanh(v / 10)); "all" combines them
-HOOK_CANDIDATES: dict[str, dict[str, LocomotionHooks]] = {}
-
-
-def _candidates(
-    obs_dim: int,
-    positions: tuple[int, ...],
-    dt: float,
-    angles: tuple[int, ...] = (),
-    velocities: tuple[int, ...] = (),
-) -> dict[str, LocomotionHooks]:
-    """:param velocities: unclipped velocity entries of the observation (a "bounded" candidate where there are any)"""
-    candidates = dict(
-        raw=LocomotionHooks(obs_dim, exclude=positions),
-        progress=LocomotionHooks(obs_dim, exclude=positions, rates=positions, dt=dt),
-    )
-    if angles:
-        candidates["sincos"] = LocomotionHooks(obs_dim, exclude=positions, angles=angles)
-        candidates["sincos+progress"] = LocomotionHooks(obs_dim, exclude=positions, angles=angles, rates=positions, dt=dt)
-    if velocities:
-        candidates["bounded"] = LocomotionHooks(obs_dim, exclude=positions, bounded=velocities)
-        candidates["all"] = LocomotionHooks(
-            obs_dim, exclude=positions, angles=angles, rates=positions, dt=dt, bounded=velocities
-        )
-    return candidates
-
-
-HOOK_CANDIDATES["HalfCheetah-v5"] = _candidates(
-    18, (HALF_CHEETAH_X,), HALF_CHEETAH_DT, angles=(2,), velocities=tuple(range(9, 18))
-)
-HOOK_CANDIDATES["Hopper-v5"] = _candidates(12, (HOPPER_X,), HOPPER_DT)  # qvel clipped to [-10, 10] by the env
-HOOK_CANDIDATES["Walker2d-v5"] = _candidates(18, (WALKER_X,), WALKER_DT)  # the same
-HOOK_CANDIDATES["Swimmer-v5"] = _candidates(
-    10, (SWIMMER_X, SWIMMER_Y), SWIMMER_DT, angles=(2,), velocities=tuple(range(5, 10))
-)
-HOOK_CANDIDATES["Ant-v5"] = _candidates(107, (ANT_X, ANT_Y), ANT_DT, velocities=tuple(range(15, ANT_STATE_END)))
