@@ -290,7 +290,7 @@ def _raw_hooks(positions: tuple[int, ...]) -> dict[str, Any]:
 
 
 # HalfCheetah-v5's hooks, chosen by the held-out predicted-return error on recorded PETS and POPLIN-P data
-# (benchmarks/RESULTS.md, "Model hooks of the v5 locomotion tasks"); whether the policy network sees them too
+# (benchmarks/RESULTS.md, "Model hooks of HalfCheetah-v5"); whether the policy network sees them too
 HALF_CHEETAH_HOOKS = "sincos"
 HALF_CHEETAH_POLICY_FEATURES = False
 
