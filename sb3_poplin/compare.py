@@ -266,6 +266,7 @@ class JobResult:
     :param resumed: the interrupted run that was continued (relative path), if any
     :param output_tail: the end of the run's output (for failures)
     :param files: run files sent back by a Ray task (relative path -> content)
+    :param missing: no complete run exists and none was started (``--report-only``): reported as missing, not failed
     """
 
     job: Job
@@ -275,6 +276,7 @@ class JobResult:
     resumed: str | None = None
     output_tail: str = ""
     files: dict[str, bytes] = field(default_factory=dict)
+    missing: bool = False
 
 
 def is_complete(run: Path, name: str) -> bool:
@@ -633,6 +635,7 @@ def summarize(
     budget_step: int | None = None,
     window: int = PAPER_WINDOW,
     reference: str | None = None,
+    missing: dict[str, int] | None = None,
 ) -> dict[str, Any]:
     """
     Final returns of one task at the matched step (the last evaluation step every run reached), by the paper's
@@ -646,6 +649,7 @@ def summarize(
     :param budget_step: the step of the paper's protocol (the task's smallest ``n_timesteps``)
     :param window: the paper's protocol averages the training episodes that ended in the last ``window`` steps
     :param reference: the column whose final return the others must reach (``None`` or absent: no reach table)
+    :param missing: algorithm -> runs not found and not started (``--report-only``)
     :return: the summary written to ``results.json``
     """
     matched = int(min(curve.timesteps[-1] for curve in curves)) if curves else 0
@@ -658,6 +662,7 @@ def summarize(
         entry["mean"] = float(np.mean(entry["final"]))
         entry["std"] = float(np.std(entry["final"]))
     summary: dict[str, Any] = {"env": env, "matched_step": matched, "labels": labels, "failed": failed, "expected": expected}
+    summary["missing"] = dict(missing or {})
     training = training or []
     paper: dict[str, dict[str, Any]] = {}
     if budget_step is not None:
@@ -698,13 +703,15 @@ def format_cell(summary: dict[str, Any], label: str, algo: str) -> str:
     :param summary: a task's summary
     :param label: column label
     :param algo: the label's algorithm
-    :return: the table cell: mean ± std over seeds, the number of seeds and failures
+    :return: the table cell: mean ± std over seeds, the number of seeds, of failed runs and of missing ones (not run
+        yet: ``--report-only``)
     """
     entry = summary["labels"].get(label)
-    failed = summary["failed"].get(algo, 0)
-    note = f", {failed} failed" if failed else ""
+    absent = {"failed": summary["failed"].get(algo, 0), "missing": summary.get("missing", {}).get(algo, 0)}
+    note = "".join(f", {count} {kind}" for kind, count in absent.items() if count)
     if entry is None:
-        return f"failed ({failed}/{summary['expected'].get(algo, 0)})" if failed else "—"
+        expected = summary["expected"].get(algo, 0)
+        return ", ".join(f"{kind} ({count}/{expected})" for kind, count in absent.items() if count) or "—"
     n_seeds = len(entry["final"])
     if n_seeds == 1:
         return f"{entry['mean']:.1f} (1 seed{note})"
@@ -728,7 +735,7 @@ def table_labels(summaries: list[dict[str, Any]]) -> list[str]:
     for summary in summaries:
         labels += [label for label in summary["labels"] if label not in labels]
     for summary in summaries:
-        for algo in summary["failed"]:
+        for algo in [*summary["failed"], *summary.get("missing", {})]:
             if not any(label_algo(label) == algo for label in labels):
                 labels.append(algo.upper())
     return labels
@@ -911,15 +918,17 @@ def write_report(
         env_results = [result for result in results if result.job.env == env]
         curves = [curve for result in env_results if result.run_dir is not None for curve in load_curves(result)]
         failed: dict[str, int] = {}
+        missing: dict[str, int] = {}
         expected: dict[str, int] = {}
         for result in env_results:
             expected[result.job.column] = expected.get(result.job.column, 0) + 1
             if result.run_dir is None:
-                failed[result.job.column] = failed.get(result.job.column, 0) + 1
+                absent = missing if result.missing else failed
+                absent[result.job.column] = absent.get(result.job.column, 0) + 1
         finished = [result for result in env_results if result.run_dir is not None]
         training = [episodes for result in finished if (episodes := load_training(result)) is not None]
         budget_step = min((result.job.n_timesteps for result in env_results), default=None)
-        summary = summarize(env, curves, failed, expected, training, budget_step, window, reference)
+        summary = summarize(env, curves, failed, expected, training, budget_step, window, reference, missing)
         summary["name"] = (paper_names or {}).get(env, env)
         summaries.append(summary)
         if curves:
@@ -1162,7 +1171,7 @@ def main(argv: list[str] | None = None) -> int:
         results = []
         for job in jobs:
             run_dir = find_run(job)
-            results.append(JobResult(job, 0 if run_dir else 1, run_dir, reused=run_dir is not None))
+            results.append(JobResult(job, 0 if run_dir else 1, run_dir, reused=run_dir is not None, missing=not run_dir))
     elif options.ray_address:
         results = run_ray(jobs, options.ray_address, options.jobs, options.force)
     else:
@@ -1173,10 +1182,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(table.read_text())
     print(f"Report: {output}")
-    n_failed = sum(result.run_dir is None for result in results)
+    n_missing = sum(result.run_dir is None and result.missing for result in results)
+    n_failed = sum(result.run_dir is None and not result.missing for result in results)
     if n_failed:
-        print(f"{n_failed} of {len(results)} runs failed or are missing (see {jobs[0].log_folder}/compare_logs)")
-    return 1 if n_failed else 0
+        print(f"{n_failed} of {len(results)} runs failed (see {jobs[0].log_folder}/compare_logs)")
+    if n_missing:
+        print(f"{n_missing} of {len(results)} runs are missing: --report-only reports complete runs, run without it")
+    return 1 if n_failed or n_missing else 0
 
 
 if __name__ == "__main__":

@@ -185,6 +185,30 @@ def test_compare_reports_the_paper_protocol_and_steps_to_reach(tmp_path: Path) -
         compare_module.plan_jobs(compare_module.parse_args([*common, "--steps-scale", "sac:three"]))
 
 
+def test_report_only_labels_runs_not_made_yet_missing_and_not_failed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Seeds 0-1 finished, seed 2 never started: ``--report-only`` reports two seeds and one missing run."""
+    common = ["--algos", "pets", "--envs", "Pendulum-v1", "-n", "2000", "--n-evals", "2", "--log-folder", str(tmp_path)]
+    for job in compare_module.plan_jobs(compare_module.parse_args([*common, "--seeds", "0", "1"])):
+        run_dir = tmp_path / job.zoo_algo / f"Pendulum-v1_{job.seed + 1}_{job.algo}"
+        write_fake_run(job, run_dir, [-100.0, 10.0 * (job.seed + 1)], [-300.0, -200.0], 1000)
+    argv = [*common, "--seeds", "0", "1", "2", "--report-only", "--output", str(tmp_path / "report")]
+    assert compare_module.main(argv) == 1
+    output = capsys.readouterr().out
+    assert "1 of 3 runs are missing" in output and "failed" not in output
+    table = (tmp_path / "report" / "results.md").read_text()
+    assert "| Pendulum-v1 | 2000 | 15.0 ± 5.0 (2 seeds, 1 missing) |" in table and "failed" not in table
+    task = json.loads((tmp_path / "report" / "results.json").read_text())["tasks"][0]
+    assert task["missing"] == {"pets": 1} and task["failed"] == {}
+    # a run that was started and failed is still a failure
+    job = compare_module.plan_jobs(compare_module.parse_args([*common, "--seeds", "2"]))[0]
+    summary = {"labels": {}, "failed": {"pets": 1}, "missing": {}, "expected": {"pets": 1}}
+    assert compare_module.format_cell(summary, "PETS (MPC)", job.column) == "failed (1/1)"
+    summary = {"labels": {}, "failed": {}, "missing": {"pets": 1}, "expected": {"pets": 1}}
+    assert compare_module.format_cell(summary, "PETS (MPC)", job.column) == "missing (1/1)"
+
+
 def test_compare_plans_and_reports_the_paper_suite(tmp_path: Path) -> None:
     from sb3_poplin.tasks.paper_suite import PAPER_TASKS
 
