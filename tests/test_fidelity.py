@@ -252,9 +252,15 @@ def test_obs_postproc_inverts_targ_proc_for_every_registered_task(task_id):
     obs, nxt = th.nan_to_num(obs.clamp(-50, 50)), th.nan_to_num(nxt.clamp(-50, 50))
     spec = make_task(task_id)
     hooks = spec.model_hooks()
-    # the policy sees the observation without the root positions (no task gives it the model's features yet)
-    assert hooks.pop("policy_input_exclude") == list(EXCLUDED_INPUTS.get(task_id, ()))
-    assert hooks.pop("policy_obs_preproc") is None
+    # the policy sees the observation without the root positions, or (HalfCheetah-v5 since 0.4.1) the model's features
+    policy_exclude, policy_preproc = hooks.pop("policy_input_exclude"), hooks.pop("policy_obs_preproc")
+    if task_id in POLICY_ON_MODEL_FEATURES:
+        assert policy_exclude == [] and policy_preproc == spec.obs_preproc is not None
+        moved = obs.clone()
+        moved[:, EXCLUDED_INPUTS[task_id]] += 7.0  # the root position is not among the features
+        assert th.equal(policy_preproc(moved), policy_preproc(obs))
+    else:
+        assert policy_exclude == list(EXCLUDED_INPUTS.get(task_id, ())) and policy_preproc is None
     model = ProbabilisticEnsemble(
         obs.shape[1], 1, ensemble_size=1, hidden_sizes=(4,), input_exclude=hooks.pop("model_input_exclude"), **hooks
     )
@@ -263,6 +269,9 @@ def test_obs_postproc_inverts_targ_proc_for_every_registered_task(task_id):
         kept = [i for i in range(obs.shape[1]) if i not in spec.model_input_exclude]
         assert th.equal(model.obs_preproc(obs), obs[:, kept])
 
+
+# the tasks whose policy network sees the model's input features
+POLICY_ON_MODEL_FEATURES = ("HalfCheetah-v5",)
 
 # the root positions the tasks hide from the networks (test_tasks checks that they are the qpos coordinates)
 EXCLUDED_INPUTS = {
@@ -329,21 +338,31 @@ def test_excluded_positions_are_hidden_from_the_networks_and_their_delta_is_pred
     assert th.allclose(from_moved[:, 0] - predicted[:, 0], shift, atol=1e-4)  # from wherever they are
 
 
-def test_half_cheetah_v5_model_sees_sin_cos_of_the_pitch_and_not_x_and_the_policy_sees_the_raw_rest():
+def test_half_cheetah_v5_networks_see_sin_cos_of_the_pitch_and_not_x():
     model = tiny("poplin-p", "HalfCheetah-v5")
     dynamics, actor = model.policy.dynamics, model.policy.actor
     assert dynamics.in_dim == 17 + 1 + 6 and dynamics.out_dim == 18  # x dropped, pitch as two features
     obs = th.randn(5, 18) * 3
     action = th.rand(5, 6) * 2 - 1
-    expected = th.cat([obs[:, 1:2], obs[:, 3:], th.sin(obs[:, 2:3]), th.cos(obs[:, 2:3]), action], dim=1)
-    assert th.equal(dynamics.raw_input(obs, action), expected)
+    features = th.cat([obs[:, 1:2], obs[:, 3:], th.sin(obs[:, 2:3]), th.cos(obs[:, 2:3])], dim=1)
+    assert th.equal(dynamics.raw_input(obs, action), th.cat([features, action], dim=1))
     turned = obs.clone()
-    turned[:, 2] += 2 * math.pi  # a full turn of the pitch is the same posture to the model
-    assert th.allclose(dynamics.raw_input(turned, action), expected, atol=1e-5)
+    turned[:, 2] += 2 * math.pi  # a full turn of the pitch is the same posture to both networks
+    assert th.allclose(dynamics.raw_input(turned, action), th.cat([features, action], dim=1), atol=1e-5)
     assert dynamics.training_target(obs, turned).equal(turned - obs)  # the change itself is predicted as a delta
-    assert actor.in_dim == 17  # the policy: the observation without x, the pitch as it is
+    assert actor.in_dim == 18  # the policy: the model's features (since 0.4.1)
     with th.no_grad():
-        assert not th.allclose(actor(turned), actor(obs))
+        assert th.allclose(actor(turned), actor(obs), atol=1e-5)
+        moved = obs.clone()
+        moved[:, 0] += 100.0  # x is hidden from the policy too
+        assert th.equal(actor(moved), actor(obs))
+    # zips keep what their networks were trained with: 0.4.0's policy saw the raw pitch, 0.3.0's model too
+    spec = make_task("HalfCheetah-v5")
+    assert spec.model_hooks("0.4.0")["policy_obs_preproc"] is None and spec.model_hooks("0.4.0")["obs_preproc"] is not None
+    assert spec.model_hooks("0.4.0")["policy_input_exclude"] == [0]
+    assert spec.model_hooks("0.3.0")["obs_preproc"] is None and spec.model_hooks("0.3.0")["model_input_exclude"] == [0]
+    hooks = spec.model_hooks("0.4.1")
+    assert hooks["obs_preproc"] is not None and hooks["policy_obs_preproc"] == hooks["obs_preproc"]
 
 
 def test_pets_cheetah_model_sees_sin_cos_of_the_angle_and_not_the_velocity():

@@ -236,16 +236,18 @@ def test_a_pets_cheetah_zip_of_release_0_2_0_runs_its_model_without_the_hooks_of
     assert resaved.model_hooks_release == "0.2.0" and resaved.policy.model_hooks == NO_HOOKS
 
 
+@pytest.mark.parametrize("release", ["0.3.0", "0.4.0"])
 @pytest.mark.parametrize("variant", ["pets", "poplin-p"])
-def test_half_cheetah_zips_of_release_0_3_0_load_and_plan_as_they_did(variant, tmp_path):
+def test_half_cheetah_zips_of_earlier_releases_load_and_plan_as_they_did(variant, release, tmp_path):
     """
-    Zips written by the 0.3.0 code (tests/data/make_legacy_0_3_0_zips.py) on HalfCheetah-v5, whose model hooks may
-    change after 0.3.0: the same predictions, plans and policy actions as 0.3.0 gave right after saving them.
+    Zips written by the 0.3.0 and 0.4.0 code (tests/data/make_legacy_0_3_0_zips.py) on HalfCheetah-v5, whose hooks
+    changed after each (0.4.0: the model's pitch as sine and cosine; 0.4.1: the policy's too): the same predictions,
+    plans and policy actions as that release gave right after saving them.
     """
-    path = DATA / f"legacy-0.3.0-{variant}-half-cheetah.zip"
-    recorded = np.load(DATA / f"legacy-0.3.0-{variant}-half-cheetah.npz")
+    path = DATA / f"legacy-{release}-{variant}-half-cheetah.zip"
+    recorded = np.load(DATA / f"legacy-{release}-{variant}-half-cheetah.npz")
     loaded = POPLIN.load(path)
-    assert loaded.sb3_poplin_version == "0.3.0" and loaded.model_hooks_release == "0.3.0"
+    assert loaded.sb3_poplin_version == release and loaded.model_hooks_release == release
     obs, actions = th.as_tensor(recorded["obs"]), th.as_tensor(recorded["actions"])
     with th.no_grad():
         predicted, _ = loaded.policy.dynamics.propagate(obs.unsqueeze(1), actions.unsqueeze(1), "expectation")
@@ -255,9 +257,9 @@ def test_half_cheetah_zips_of_release_0_3_0_load_and_plan_as_they_did(variant, t
     if variant == "poplin-p":
         loaded.control = "policy"
         np.testing.assert_allclose(loaded.predict(recorded["obs"])[0], recorded["policy_actions"], rtol=0, atol=1e-6)
-    # saved again by this release, it keeps 0.3.0's hooks
+    # saved again by this release, it keeps its release's hooks
     loaded.save(tmp_path / "resaved.zip")
-    assert saved_data(tmp_path / "resaved.zip")["model_hooks_release"] == "0.3.0"
+    assert saved_data(tmp_path / "resaved.zip")["model_hooks_release"] == release
 
 
 def test_pets_cheetah_agents_of_release_0_3_0_keep_the_model_hooks(tmp_path):

@@ -1,15 +1,18 @@
 """
-Write zips of sb3_poplin 0.3.0 on HalfCheetah-v5 for tests/test_reliability.py: the v5 tasks' model hooks may change
-after 0.3.0 (issue 34), and a 0.3.0 zip must keep loading and planning as it was trained.
+Write zips of sb3_poplin 0.3.0 (or of a later release, named as the second argument) on HalfCheetah-v5 for
+tests/test_reliability.py: the v5 tasks' model hooks changed after 0.3.0 and 0.4.0 (issue 34), and a zip must keep
+loading and planning as it was trained.
 
 Run with the 0.3.0 code (commit 41334bf) on the path, from the repository root (the script's folder, not the working
 directory, comes first on ``sys.path``, so the checkout on ``PYTHONPATH`` is imported, not the editable install)::
 
     mkdir /tmp/sb3p030 && git archive 41334bf | tar -x -C /tmp/sb3p030
     PYTHONPATH=/tmp/sb3p030 python tests/data/make_legacy_0_3_0_zips.py tests/data
+    # 0.4.0 (the model on the pitch's sine and cosine, the policy on the raw observation): commit 7123a35
+    PYTHONPATH=/tmp/sb3p040 python tests/data/make_legacy_0_3_0_zips.py tests/data 0.4.0
 
-It writes ``legacy-0.3.0-<variant>-half-cheetah.zip`` for PETS and POPLIN-P (tiny agents: one random episode, one
-model fit and distillation, a few planned steps; under 100 KB each) and ``legacy-0.3.0-<variant>-half-cheetah.npz``:
+It writes ``legacy-<release>-<variant>-half-cheetah.zip`` for PETS and POPLIN-P (tiny agents: one random episode, one
+model fit and distillation, a few planned steps; under 100 KB each) and ``legacy-<release>-<variant>-half-cheetah.npz``:
 observations (x kept, as the task makes the env), scaled actions, the next observations 0.3.0's model predicts for
 them (expectation over the members), the actions 0.3.0 plans for the observations right after loading its own zip
 and, for POPLIN-P, its policy network's actions.
@@ -51,13 +54,13 @@ def states(count: int, seed: int) -> np.ndarray:
     return np.stack(found).astype(np.float32)
 
 
-def main(out: str) -> None:
+def main(out: str, expected: str = "0.3.0") -> None:
     th.set_num_threads(1)
     with open(f"{sb3_poplin.__path__[0]}/version.txt") as file:
         release = file.read().strip()
-    assert release == "0.3.0", f"run this with sb3_poplin 0.3.0 on PYTHONPATH, not {release}"
+    assert release == expected, f"run this with sb3_poplin {expected} on PYTHONPATH, not {release}"
     for variant in ("pets", "poplin-p"):
-        path = f"{out}/legacy-0.3.0-{variant}-half-cheetah.zip"
+        path = f"{out}/legacy-{release}-{variant}-half-cheetah.zip"
         extra = dict(policy_net_arch=(8,), policy_epochs=2) if variant == "poplin-p" else {}
         model = POPLIN(variant, ENV, seed=0, model_epochs=2, **TINY, **extra)
         model.learn(2000, callback=StopAt(1010))  # a random episode, a model fit, 10 planned steps
@@ -75,8 +78,8 @@ def main(out: str) -> None:
         if variant == "poplin-p":
             loaded.control = "policy"
             arrays["policy_actions"] = loaded.predict(obs)[0]
-        np.savez(f"{out}/legacy-0.3.0-{variant}-half-cheetah.npz", **arrays)
+        np.savez(f"{out}/legacy-{release}-{variant}-half-cheetah.npz", **arrays)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    main(*sys.argv[1:3])
