@@ -279,7 +279,7 @@ class ProbabilisticEnsemble(nn.Module):
 
         :param x: standardised input ``[E, B, in]``
         """
-        out = kernels.fused_output(self, x)
+        out = kernels.no_grad_output(self, x)
         return self(x) if out is None else self._gaussian_head(out)
 
     def shared_input_mean(self, x: th.Tensor) -> th.Tensor:
@@ -355,20 +355,18 @@ class ProbabilisticEnsemble(nn.Module):
             if noise is None:
                 noise = self.draw_noise((n, p), propagation, x.device, generator)
             assert noise.eps is not None
+            # the rows of member m: particles order[c, m k : (m + 1) k] of every candidate c (k = P / E; particle p
+            # in place of order[c, p] without an order), gathered member-major from the flat particles [N P, d]: one
+            # copy in and one out, no argsort to undo the shuffle
             per_member = p // e
-            eps = noise.eps
-            if noise.order is not None:  # ts1 / ds: a fresh particle-to-member assignment
-                x = th.take_along_dim(x, noise.order.unsqueeze(-1), dim=1)
-                eps = th.take_along_dim(eps, noise.order.unsqueeze(-1), dim=1)
-
-            def by_member(t: th.Tensor) -> th.Tensor:  # [N, P, d] -> [N, E, P/E, d] -> [E, N * P/E, d]
-                return t.view(n, e, per_member, t.shape[-1]).transpose(0, 1).reshape(e, n * per_member, t.shape[-1])
-
-            mean, logvar = self.predict(by_member(x))
-            sample = mean + (0.5 * logvar).exp() * by_member(eps)  # [E, N * P/E, out]
-            out = self._to_delta(sample.view(e, n, per_member, self.out_dim).transpose(0, 1).reshape(n, p, self.out_dim))
-            if noise.order is not None:
-                out = th.take_along_dim(out, noise.order.argsort(dim=1).unsqueeze(-1), dim=1)
+            slots = th.arange(p, device=x.device) if noise.order is None else noise.order  # [P] or [N, P]
+            flat = (th.arange(n, device=x.device) * p).unsqueeze(1) + slots  # [N, P] row of each slot's particle
+            rows = flat.view(n, e, per_member).transpose(0, 1).reshape(-1)  # [E * N * k]
+            mean, logvar = self.predict(x.reshape(n * p, -1).index_select(0, rows).view(e, n * per_member, -1))
+            eps = noise.eps.reshape(n * p, -1).index_select(0, rows).view(e, n * per_member, -1)
+            sample = mean + (0.5 * logvar).exp() * eps  # [E, N * k, out]
+            out = th.empty(n * p, self.out_dim, dtype=sample.dtype, device=sample.device)
+            out = self._to_delta(out.index_copy_(0, rows, sample.reshape(-1, self.out_dim)).view(n, p, self.out_dim))
             if noise.resample is not None:  # ds: resample from the particles' moments
                 mu = out.mean(dim=1, keepdim=True)
                 std = out.std(dim=1, keepdim=True, unbiased=False)

@@ -3,6 +3,7 @@
 import importlib.util
 import os
 import sys
+import tempfile
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -11,9 +12,12 @@ import numpy as np
 import torch as th
 from hypothesis import settings
 
-from sb3_poplin import POPLIN
+from sb3_poplin import POPLIN, kernels
 
 th.set_num_threads(1)
+
+# the forward paths this host chooses (sb3_poplin.kernels) are kept in a throw-away folder, not the user's cache
+os.environ[kernels.CACHE_ENV] = tempfile.mkdtemp(prefix="sb3_poplin-test-cache-")
 
 # hypothesis: derandomised, so every run tries the same examples and a failure replays exactly (the examples derive
 # from the test itself); HYPOTHESIS_PROFILE=explore draws new ones each run and prints a failure's reproduce blob

@@ -2,6 +2,7 @@
 
 import copy
 import itertools
+import json
 from typing import Any
 
 import gymnasium as gym
@@ -65,47 +66,61 @@ def test_shared_input_mean_in_bf16_follows_parameter_updates():
 FUSED = pytest.mark.skipif(
     kernels.onednn_fused_linear(th.float32) is None, reason="this torch build has no oneDNN fused linear"
 )
+AVAILABLE_PATHS = [p for p in kernels.PATHS if p != "fused" or kernels.onednn_fused_linear(th.float32) is not None]
 
 
-def plain_and_fused(monkeypatch, model, compute):
-    """``compute()`` with the oneDNN fused forward (at any batch size), then with it switched off (batched matmuls)."""
-    monkeypatch.setattr(kernels, "FUSED_MIN_ROWS", 0)
-    fused = compute()
-    monkeypatch.setattr(kernels, "onednn_fused_linear", lambda dtype: None)
-    plain = compute()
-    monkeypatch.undo()
-    return fused, plain
+@pytest.fixture
+def path_cache(tmp_path, monkeypatch):
+    """An empty path cache in a fresh folder, and none of this process's choices: as on a host's first plan."""
+    monkeypatch.setenv(kernels.CACHE_ENV, str(tmp_path / "cache"))
+    monkeypatch.delenv(kernels.PATH_ENV, raising=False)
+    monkeypatch.setattr(kernels.PathChoice, "chosen", {})
+    monkeypatch.setattr(kernels.PathChoice, "loaded", False)
+    return tmp_path / "cache" / "forward_paths.json"
 
 
-@FUSED
+def by_path(monkeypatch, compute) -> dict[str, th.Tensor]:
+    """``compute()`` with each available forward path forced."""
+    out = {}
+    for path in AVAILABLE_PATHS:
+        monkeypatch.setenv(kernels.PATH_ENV, path)
+        out[path] = compute()
+    monkeypatch.delenv(kernels.PATH_ENV)
+    return out
+
+
 @pytest.mark.parametrize("learned_reward", [False, True])
-def test_fused_forward_equals_the_plain_forward(monkeypatch, learned_reward: bool):
+def test_every_forward_path_equals_the_training_forward(monkeypatch, learned_reward: bool):
     th.manual_seed(0)
     model = ProbabilisticEnsemble(5, 2, ensemble_size=3, hidden_sizes=(16, 24, 8), learned_reward=learned_reward)
     with th.no_grad():
         for layer in [*model.hidden, model.output]:
             layer.bias.normal_()
     shared, per_member = th.randn(11, model.in_dim), th.randn(3, 11, model.in_dim)
+    with th.no_grad():
+        training_mean = model(shared.expand(3, -1, -1))[0]
+        training = th.cat(model(per_member), dim=-1)
     with th.inference_mode():
-        fused, plain = plain_and_fused(monkeypatch, model, lambda: model.shared_input_mean(shared))
-        assert fused.shape == plain.shape == (3, 11, model.out_dim)
-        assert th.allclose(fused, plain, atol=1e-5) and plain.std() > 0.1
-        fused, plain = plain_and_fused(monkeypatch, model, lambda: th.cat(model.predict(per_member), dim=-1))
-        assert fused.shape == plain.shape == (3, 11, 2 * model.out_dim)
-        assert th.allclose(fused, plain, atol=1e-5)
-        assert th.allclose(plain, th.cat(model(per_member), dim=-1))  # the plain path is the training forward
+        for path, mean in by_path(monkeypatch, lambda: model.shared_input_mean(shared)).items():
+            assert mean.shape == (3, 11, model.out_dim), path
+            assert th.allclose(mean, training_mean, atol=1e-5) and mean.std() > 0.1, path
+        for path, out in by_path(monkeypatch, lambda: th.cat(model.predict(per_member), dim=-1)).items():
+            assert out.shape == (3, 11, 2 * model.out_dim), path
+            assert th.allclose(out, training, atol=1e-5), path
+            if path == "batched":  # the training forward's own products, in the same order
+                assert th.equal(out, training)
         with th.autocast("cpu", dtype=th.bfloat16):
-            fused, plain = plain_and_fused(monkeypatch, model, lambda: th.cat(model.predict(per_member), dim=-1))
-        assert fused.dtype == th.float32
-        assert th.allclose(fused, plain.float(), atol=0.05, rtol=0.05)
-    # with gradients: always the plain forward, which trains
+            for path, out in by_path(monkeypatch, lambda: th.cat(model.predict(per_member), dim=-1)).items():
+                assert out.dtype == th.float32, path
+                assert th.allclose(out, training, atol=0.05, rtol=0.05), path
+    # with gradients: always the training forward, which trains
     mean, _ = model(per_member)
     assert mean.requires_grad
 
 
-@FUSED
-def test_fused_forward_follows_parameter_updates(monkeypatch):
-    monkeypatch.setattr(kernels, "FUSED_MIN_ROWS", 0)
+@pytest.mark.parametrize("path", AVAILABLE_PATHS)
+def test_forward_paths_follow_parameter_updates(monkeypatch, path: str):
+    monkeypatch.setenv(kernels.PATH_ENV, path)
     th.manual_seed(0)
     model = ProbabilisticEnsemble(3, 2, ensemble_size=2, hidden_sizes=(8,))
     x = th.randn(4, model.in_dim)
@@ -118,30 +133,95 @@ def test_fused_forward_follows_parameter_updates(monkeypatch):
     assert th.allclose(second - first, th.ones_like(first), atol=1e-5)  # standardised units: +1 on every output
 
 
-@FUSED
-def test_the_fused_forward_runs_from_fused_min_rows_on(monkeypatch):
-    """Few rows per member go through the batched matmuls, many through the per-member oneDNN layers."""
-    calls = []
-    linear = kernels.onednn_fused_linear(th.float32)
+class FakeTimer:
+    """A clock that advances by the time given for the forward path that runs between two readings."""
 
-    def counting(*args):
-        calls.append(args[0].shape[0])
-        return linear(*args)
+    def __init__(self, seconds: dict[str, float]) -> None:
+        self.seconds, self.now, self.running = seconds, 0.0, None
 
-    monkeypatch.setattr(kernels, "onednn_fused_linear", lambda dtype: counting)
+    def __call__(self) -> float:
+        if self.running is not None:
+            self.now += self.seconds[self.running]
+        return self.now
+
+
+def test_the_path_is_chosen_by_timing_from_probe_min_rows_on_and_kept_per_host(monkeypatch, path_cache):
+    """Few rows: the batched path, untimed. Many: each candidate timed once per size class, the fastest taken, the
+    choice written to the cache file and read back from it (no second timing) by a process that starts afresh."""
+    timer = FakeTimer({"batched": 3.0, "members": 1.0, "fused": 2.0})
+    monkeypatch.setattr(kernels.PathChoice, "timer", timer)
+    ran: list[str] = []
+    for path, layers in list(kernels.LAYERS.items()):
+
+        def recording(*args, path=path, layers=layers):
+            ran.append(path)
+            timer.running = path
+            return layers(*args)
+
+        monkeypatch.setitem(kernels.LAYERS, path, recording)
     th.manual_seed(0)
     model = ProbabilisticEnsemble(3, 2, ensemble_size=2, hidden_sizes=(8, 8))
-    few, many = kernels.FUSED_MIN_ROWS - 1, kernels.FUSED_MIN_ROWS
+    few, many = kernels.PROBE_MIN_ROWS - 1, kernels.PROBE_MIN_ROWS
     with th.inference_mode():
         model.shared_input_mean(th.randn(few, model.in_dim))
         model.predict(th.randn(2, few, model.in_dim))
-        assert calls == []
+        assert ran == ["batched", "batched"] and not path_cache.exists()
+        ran.clear()
         model.shared_input_mean(th.randn(many, model.in_dim))
-        assert calls == [many] * 6  # 2 members x 3 layers
-        model.predict(th.randn(2, many, model.in_dim))
-        assert calls == [many] * 12
+    candidates = len(AVAILABLE_PATHS)
+    assert len(ran) == candidates * (1 + kernels.PROBE_ROUNDS) + 1  # a warm-up and the rounds each, then the call
+    assert ran[-1] == "members" and set(ran) == set(AVAILABLE_PATHS)
+    stored = json.loads(path_cache.read_text())
+    assert list(stored.values()) == ["members"]
+    (key,) = stored
+    assert f"shared x2 {model.in_dim}-8-8-{model.out_dim} | 512 rows" in key  # rows to the next power of 2
+    ran.clear()
+    with th.inference_mode():  # the same size class: no second probe
+        model.shared_input_mean(th.randn(many + 10, model.in_dim))
+    assert ran == ["members"]
+    monkeypatch.setattr(kernels.PathChoice, "chosen", {})  # a new process on the same host: read from the file
+    monkeypatch.setattr(kernels.PathChoice, "loaded", False)
+    timer.seconds = {"batched": 1.0, "members": 3.0, "fused": 3.0}
+    ran.clear()
+    with th.inference_mode():
+        model.shared_input_mean(th.randn(many, model.in_dim))
+        assert ran == ["members"]
+        ran.clear()
+        model.predict(th.randn(2, many, model.in_dim))  # another size class (per-member inputs): timed, batched now wins
+    assert ran[-1] == "batched" and len(json.loads(path_cache.read_text())) == 2
+    ran.clear()
     model.predict(th.randn(2, many, model.in_dim))  # gradients on: the training forward
-    assert len(calls) == 12
+    assert ran == []
+
+
+def test_the_path_can_be_forced_and_a_wrong_name_is_refused(monkeypatch, path_cache):
+    th.manual_seed(0)
+    model = ProbabilisticEnsemble(3, 2, ensemble_size=2, hidden_sizes=(8,))
+    x = th.randn(kernels.PROBE_MIN_ROWS, model.in_dim)
+    monkeypatch.setenv(kernels.PATH_ENV, "members")
+    with th.inference_mode():
+        model.shared_input_mean(x)
+    assert not path_cache.exists()  # forced: nothing timed, nothing stored
+    monkeypatch.setenv(kernels.PATH_ENV, "fastest")
+    with pytest.raises(ValueError, match=r"SB3_POPLIN_FORWARD_PATH='fastest' is not a forward path: use one of batched"):
+        with th.inference_mode():
+            model.shared_input_mean(x)
+    monkeypatch.setenv(kernels.PATH_ENV, "fused")
+    monkeypatch.setattr(kernels, "onednn_fused_linear", lambda dtype: None)
+    with pytest.raises(ValueError, match="no oneDNN fused linear"):
+        with th.inference_mode():
+            model.shared_input_mean(x)
+
+
+def test_an_unwritable_cache_keeps_the_choice_in_memory(monkeypatch, path_cache, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    monkeypatch.setenv(kernels.CACHE_ENV, str(blocker / "sub"))  # a folder under a file: cannot be made
+    th.manual_seed(0)
+    model = ProbabilisticEnsemble(3, 2, ensemble_size=2, hidden_sizes=(8,))
+    with th.inference_mode():
+        model.shared_input_mean(th.randn(kernels.PROBE_MIN_ROWS, model.in_dim))
+    assert len(kernels.PathChoice.chosen) == 1
 
 
 def test_default_weight_decays_match_the_paper():

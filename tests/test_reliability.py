@@ -136,7 +136,7 @@ def test_zips_of_release_0_1_0_load_and_keep_training(tmp_path, variant):
     # the same plan as 0.1.0 made right after loading its own zip: generator and networks restored. To float32
     # rounding, not bit for bit: on an Intel Xeon (2026-12-02) the planned action differs from the file by one ulp at
     # 2afc14c already (CI on the AMD EPYC hosts matched it exactly), and the batched matmuls that small
-    # populations now take (kernels.FUSED_MIN_ROWS) round differently again; an unrestored generator or network moves
+    # populations now take (kernels.PROBE_MIN_ROWS) round differently again; an unrestored generator or network moves
     # the actions by far more than 1e-6
     planned = loaded.predict(LEGACY_OBS, episode_start=np.ones(2, dtype=bool))[0]
     np.testing.assert_allclose(planned, np.load(DATA / f"legacy-0.1.0-{variant}-mpc.npy"), rtol=0, atol=1e-6)

@@ -164,15 +164,16 @@ def run_one(
     eval_mpc: int,
     eval_policy: int,
     commit: str,
-    fused_min_rows: int = 0,
+    forward_path: str = "fused",
 ) -> dict[str, Any]:
     """
     Train and evaluate one (task, configuration, arm, seed); :return: the record written to its JSON file.
 
     :param commit: the code the run executes: the version when the invocation started (its workers import the
         package once, so commits made while it runs do not change it)
-    :param fused_min_rows: :data:`sb3_poplin.kernels.FUSED_MIN_ROWS` for the run; 0 (the fused forward at every
-        size, as before the threshold existed) replays the earlier rounds' numbers on the same host
+    :param forward_path: the ensemble's forward path for the run (``SB3_POPLIN_FORWARD_PATH``); ``"fused"`` (the
+        fused oneDNN forward at every size, as before the paths were chosen per host) replays the earlier rounds'
+        numbers on the same host
     """
     import torch as th
     from stable_baselines3.common.evaluation import evaluate_policy
@@ -184,7 +185,7 @@ def run_one(
     from sb3_poplin.tasks import make_env
 
     th.set_num_threads(1)
-    kernels.FUSED_MIN_ROWS = fused_min_rows
+    os.environ[kernels.PATH_ENV] = forward_path
     env_name = task
     if task == "sb3_poplin/PETSCheetah-v0" and not uses_pets_hooks(task, arm):
         register_raw_cheetah()
@@ -224,7 +225,7 @@ def run_one(
         date=str(datetime.date.today()),
         commit=commit,
         machine=describe_machine(1),
-        fused_min_rows=fused_min_rows,
+        forward_path=forward_path,
     )
     saved = model_path(task, config, arm, seed)
     saved.parent.mkdir(parents=True, exist_ok=True)
@@ -324,11 +325,11 @@ def main() -> None:
     parser.add_argument("--eval-policy", type=int, default=10, help="policy-control evaluation episodes per run")
     parser.add_argument("--jobs", type=int, default=2, help="runs in parallel (one thread each)")
     parser.add_argument(
-        "--fused-min-rows",
-        type=int,
-        default=0,
-        help="kernels.FUSED_MIN_ROWS for the runs: 0 (default) replays the earlier rounds' numerics on the same host; "
-        "320 (the package default) plans faster through batched matmuls, the same function up to float rounding",
+        "--forward-path",
+        choices=["fused", "batched", "members"],
+        default="fused",
+        help="the ensemble's forward path for the runs: fused (default) replays the earlier rounds' numerics on the same "
+        "host; the others are the same function up to float rounding",
     )
     parser.add_argument("--report", action="store_true", help="print the table of the finished runs and exit")
     parser.add_argument("--paired", metavar="ARM", default=None, help="with --report: also each arm against ARM, seed by seed")
@@ -352,8 +353,7 @@ def main() -> None:
     commit = code_version()
     with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = {
-            pool.submit(run_one, *job, steps, args.eval_mpc, args.eval_policy, commit, args.fused_min_rows): job
-            for job in todo
+            pool.submit(run_one, *job, steps, args.eval_mpc, args.eval_policy, commit, args.forward_path): job for job in todo
         }
         for future in as_completed(futures):
             r = future.result()

@@ -4,14 +4,14 @@ measured in one process (median of ``--repeats`` ``predict`` calls after warm-up
 per setting to benchmarks/RESULTS.md with the ratios to PETS.
 
     python benchmarks/speed/plan_time_variants.py [--setting paper|cpu|cheetah-cpu] [--repeats 5] [--threads 1]
-        [--fused-min-rows N]
+        [--forward-path fused|batched|members]
 
 ``paper``: HalfCheetah-v5 sizes (17-dim obs, 6-dim action), population 500, horizon 30, 5 CEM
 iterations, 5 x (200, 200, 200, 200) ensemble, expectation propagation, policies [64, 64] (A) and
 [32] (P, W = 774 parameters). ``cpu``: Pendulum-v1 with the demo's CPU settings. ``cheetah-cpu``:
 ``sb3_poplin/PETSCheetah-v0``'s ``poplin_cpu.yml`` entry (population 200, horizon 15, 3 iterations,
-5 x 3 x 128), the planner of the fidelity A/B and of issue 18's comparison. ``--fused-min-rows`` sets
-``sb3_poplin.kernels.FUSED_MIN_ROWS`` (0: the fused oneDNN forward at every size, as before it existed).
+5 x 3 x 128), the planner of the fidelity A/B and of issue 18's comparison. ``--forward-path`` forces the
+ensemble's forward path (``SB3_POPLIN_FORWARD_PATH``; default: the one this host chose, see ``sb3_poplin.kernels``).
 """
 
 from __future__ import annotations
@@ -57,11 +57,11 @@ def main() -> None:
     parser.add_argument("--setting", choices=list(SETTINGS), default="paper")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--fused-min-rows", type=int, default=None, help="sb3_poplin.kernels.FUSED_MIN_ROWS for this run")
+    parser.add_argument("--forward-path", choices=["batched", "members", "fused"], default=None, help="force the forward path")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
-    if args.fused_min_rows is not None:
-        kernels.FUSED_MIN_ROWS = args.fused_min_rows
+    if args.forward_path is not None:
+        os.environ[kernels.PATH_ENV] = args.forward_path
     env_id, settings = SETTINGS[args.setting]
     results = {name: plan_time(env_id, settings, variant, args.repeats) for name, variant in VARIANTS.items()}
     pets = results["pets"]

@@ -17,8 +17,17 @@ Parts, at the paper setting's sizes:
    single-threaded share of the members x rows per thread.
 4. CEM elite statistics of one POPLIN-P Sep iteration (50 elites x 23,220 dims): element-wise weighting and
    reductions over the elites (the planner until 2026-12-01), against the planner's [1, K] x [K, D] products.
-5. The expectation forward at the CPU budget's sizes (5 members of 3 x 64, 3 x 128 and 4 x 200, 100-1000 rows): the
-   fused per-member oneDNN layers against the batched matmuls, the ratio behind ``kernels.FUSED_MIN_ROWS``.
+5. The expectation forward (5 members of 3 x 64, 3 x 128 and 4 x 200, 100-2000 rows): the three forward paths of
+   ``sb3_poplin.kernels`` (batched matmuls, transposed per-member products, fused per-member oneDNN layers), the
+   times behind the per-host choice from ``kernels.PROBE_MIN_ROWS`` rows on.
+6. Where a whole plan's time goes, as fractions of the plan (PETS expectation and TS1-20, POPLIN-P Sep, at the paper
+   setting and at ``poplin_cpu.yml``'s planner for PETSCheetah): the parts are timed by wrapping the planner's own
+   functions (candidate sampling, the search space's actions, the ensemble's no-gradient forward, the task's reward;
+   the rest of the model step is the propagation minus the forward, CEM's own work the plan minus the rollout and the
+   sampling, the forward's products and biases the forward minus its SiLU calls; the fused oneDNN path, where a host
+   takes it, has its SiLU inside the products).
+
+    python benchmarks/speed/planner_parts.py --threads 1 --parts 6
 
     python benchmarks/speed/planner_parts.py --threads 1 --parts 5
 """
@@ -167,38 +176,135 @@ def forward_part(rounds: int, threads: int, rows: int = 500) -> str:
 
 
 def small_forward_part(rounds: int) -> str:
-    """Part 5: per (members' hidden sizes, rows) the batched matmuls' time as a multiple of the fused forward's."""
-    linear = onednn_fused_linear(th.float32)
-    if linear is None:
-        return "oneDNN's fused linear is not available in this torch build"
+    """Part 5: per (members' hidden sizes, rows) each forward path's time as a multiple of the batched path's."""
+    paths = [p for p in kernels.PATHS if p != "fused" or onednn_fused_linear(th.float32) is not None]
     results = []
     for hidden in ((64,) * 3, (128,) * 3, (200,) * 4):
         th.manual_seed(0)
         model = ProbabilisticEnsemble(18, 6, 5, hidden)
         cells = []
-        for rows in (100, 200, 300, 400, 600, 1000):
+        for rows in (100, 200, 300, 400, 600, 1000, 2000):
             x = th.randn(rows, model.in_dim)
             with th.inference_mode():
-                alternatives = {
-                    "fused": functools.partial(kernels.member_layers, model, x, mean_only=True),
-                    "batched": functools.partial(batched_mean, model, x),
-                }
-                assert th.allclose(alternatives["fused"](), alternatives["batched"](), atol=1e-5)
+                alternatives = {path: functools.partial(kernels.LAYERS[path], model, x, True) for path in paths}
+                for path in paths:
+                    assert th.allclose(alternatives[path](), alternatives["batched"](), atol=1e-5)
                 samples = interleave(alternatives, rounds, max(2, 4000 // rows))
-            ratio = statistics.median(b / a for a, b in zip(samples["fused"], samples["batched"], strict=True))
-            cells.append(f"{rows} rows {statistics.median(samples['fused']) * 1e3:.2f} ms / {ratio:.2f}x")
-        results.append(f"{len(hidden)} x {hidden[0]}: " + ", ".join(cells))
-    return "fused forward time / batched as a multiple of it: " + "; ".join(results)
+            base = samples["batched"]
+            medians = [statistics.median(a / b for a, b in zip(samples[p], base, strict=True)) for p in paths[1:]]
+            ratios = " / ".join(f"{m:.2f}x" for m in medians)
+            cells.append(f"{rows} rows {statistics.median(samples['batched']) * 1e3:.2f} ms, {ratios}")
+        results.append(f"{len(hidden)} x {hidden[0]}: " + "; ".join(cells))
+    return f"batched forward time, then {' / '.join(paths[1:])} as multiples of it: " + " | ".join(results)
 
 
-def batched_mean(model: ProbabilisticEnsemble, x: th.Tensor) -> th.Tensor:
-    """The shared-input mean through the batched matmuls whatever the size (``kernels.shared_input_mean``'s other path)."""
-    saved = kernels.FUSED_MIN_ROWS
-    kernels.FUSED_MIN_ROWS = x.shape[0] + 1
-    try:
-        return kernels.shared_input_mean(model, x)
-    finally:
-        kernels.FUSED_MIN_ROWS = saved
+class PartTimer:
+    """Wall time spent in wrapped functions, by label (the outermost call of a label counts; no nesting per label)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self.depth: dict[str, int] = {}
+
+    def wrap(self, owner: object, name: str, label: str) -> None:
+        original = getattr(owner, name)
+
+        @functools.wraps(original)
+        def timed(*args: object, **kwargs: object) -> object:
+            self.depth[label] = self.depth.get(label, 0) + 1
+            start = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                self.depth[label] -= 1
+                if self.depth[label] == 0:
+                    self.seconds[label] = self.seconds.get(label, 0.0) + time.perf_counter() - start
+
+        setattr(owner, name, timed)
+
+
+PLAN_SETTINGS = {
+    "paper": ("HalfCheetah-v5", dict(horizon=30, population_size=500, num_elites=50, cem_iterations=5, ensemble_size=5)),
+    "cpu": ("sb3_poplin/PETSCheetah-v0", {}),
+}
+PLAN_VARIANTS = {
+    "PETS": dict(policy="pets"),
+    "PETS TS1-20": dict(policy="pets", propagation="ts1", num_particles=20),
+    "POPLIN-P Sep": dict(policy="poplin-p", noise="sep"),
+}
+
+
+def plan_breakdown_part(rounds: int) -> str:
+    """Part 6: fractions of a plan's wall time per part, per setting and variant (the median plan of ``rounds``)."""
+    import warnings
+
+    import torch.nn.functional as F
+
+    from sb3_poplin import POPLIN, planning, sampling
+    from sb3_poplin.dynamics import ProbabilisticEnsemble as Ensemble
+    from sb3_poplin.presets import poplin_settings
+
+    cells = []
+    for setting, (env_id, planner) in PLAN_SETTINGS.items():
+        for name, variant in PLAN_VARIANTS.items():
+            settings = dict(planner) if planner else poplin_settings(env_id)  # the CPU preset's planner and model
+            settings = {k: v for k, v in settings.items() if k not in ("policy", "noise")}
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                model = POPLIN(env=env_id, seed=0, **{**settings, **variant})
+            timer = PartTimer()
+            model.planner.reward_fn = _timed(timer, model.planner.reward_fn, "reward")
+            wrapped = {
+                (sampling.CandidateSampler, "sample"): "sampling",
+                (type(model.planner.search_space), "actions"): "search space actions",
+                (Ensemble, "propagate"): "model step",
+                (planning.MPCPlanner, "rollout"): "rollout",
+                (planning.MPCPlanner, "plan"): "plan",
+                (kernels, "shared_input_mean"): "forward",
+                (kernels, "no_grad_output"): "forward",
+                (F, "silu"): "SiLU",  # only the ensemble's hidden layers call it while planning
+            }
+            saved = {key: getattr(*key) for key in wrapped}
+            try:
+                for (owner, attr), label in wrapped.items():
+                    timer.wrap(owner, attr, label)
+                obs = model.observation_space.sample()
+                for _ in range(2):
+                    model.predict(obs)
+                plans = []
+                for _ in range(rounds):
+                    timer.seconds.clear()
+                    model.predict(obs)
+                    plans.append(dict(timer.seconds))
+            finally:
+                for (owner, attr), original in saved.items():
+                    setattr(owner, attr, original)
+            t = sorted(plans, key=lambda p: p["plan"])[len(plans) // 2]
+            get = functools.partial(lambda key, t: t.get(key, 0.0), t=t)
+            parts = {
+                "network products and biases": get("forward") - get("SiLU"),
+                "SiLU": get("SiLU"),
+                "model step outside the forward": get("model step") - get("forward"),
+                "search space actions": get("search space actions"),
+                "reward": get("reward"),
+                "rollout loop": get("rollout") - get("model step") - get("search space actions") - get("reward"),
+                "sampling": get("sampling"),
+                "CEM and the rest": get("plan") - get("rollout") - get("sampling"),
+            }
+            total = get("plan")
+            shares = ", ".join(f"{k} {v / total:.0%}" for k, v in parts.items() if abs(v) / total >= 0.005)
+            cells.append(f"{setting} {name}: {total * 1e3:.0f} ms = {shares}")
+    return " | ".join(cells)
+
+
+def _timed(timer: PartTimer, fn: Callable[..., th.Tensor] | None, label: str) -> Callable[..., th.Tensor] | None:
+    if fn is None:
+        return None
+
+    class Holder:
+        call = staticmethod(fn)
+
+    timer.wrap(Holder, "call", label)
+    return Holder.call
 
 
 def elite_part(rounds: int) -> str:
@@ -231,7 +337,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=15)
-    parser.add_argument("--parts", type=int, nargs="+", choices=range(1, 6), default=list(range(1, 6)))
+    parser.add_argument("--parts", type=int, nargs="+", choices=range(1, 7), default=list(range(1, 7)))
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     command = "python " + " ".join(sys.argv)
@@ -245,7 +351,8 @@ def main() -> None:
             ("one expectation forward, 5 x 4 x 200 on 1000 rows (two envs)", lambda: forward_part(rounds, threads, 1000)),
         ],
         4: [("CEM elite statistics, one POPLIN-P Sep iteration (50 x 23,220)", lambda: elite_part(rounds))],
-        5: [("one expectation forward at CPU-budget sizes, fused vs batched", lambda: small_forward_part(rounds))],
+        5: [("one expectation forward, the three paths at 100-2000 rows", lambda: small_forward_part(rounds))],
+        6: [("where a plan's time goes (fractions of the median plan)", lambda: plan_breakdown_part(rounds))],
     }
     parts = [(name, run()) for number in sorted(set(args.parts)) for name, run in all_parts[number]]
     peak_note = f"(sgemm 2048^3 right after: {2 * 2048**3 / min(timed_matmul() for _ in range(5)) / 1e9:.0f} GFLOP/s)"

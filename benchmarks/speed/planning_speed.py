@@ -136,7 +136,8 @@ def bf16_effect(arch: tuple[int, ...], plans: int, device: str = "cpu") -> str:
     planner = model.planner
     for i in range(plans):
         obs_t = th.as_tensor(obs, dtype=th.float32, device=model.device)
-        z = th.randn(1, model.population_size, planner.search_space.dim, generator=th.Generator().manual_seed(i)) * 0.5
+        shape = (1, model.settings.population_size, planner.search_space.dim)
+        z = th.randn(shape, generator=th.Generator().manual_seed(i)) * 0.5
         z = z.to(model.device)
         with th.inference_mode():
             planner.dtype = th.float32
