@@ -145,8 +145,13 @@ def test_dataset_slices(pendulum_data):
     assert first.num_episodes == 2 and np.array_equal(first.obs, pendulum_data.obs[:400])
     later = pendulum_data.episodes(1, 3)
     assert np.array_equal(later.obs, pendulum_data.obs[200:]) and later.episode[0] == 0 and later.num_episodes == 2
-    with pytest.raises(ValueError, match="end inside an episode"):
+    with pytest.raises(
+        ValueError,
+        match="300 steps end inside an episode of this dataset: pass an episode end, the nearest are 200 and 400",
+    ):
         pendulum_data.first_steps(300)
+    with pytest.raises(ValueError, match=r"the nearest are 600\.$"):
+        pendulum_data.first_steps(700)
     with pytest.raises(ValueError, match=r"Episodes 2\.\.3 asked of a dataset of 3 episodes"):
         pendulum_data.episodes(2, 4)
     with pytest.raises(ValueError, match="episode must count"):

@@ -106,7 +106,12 @@ class TransitionDataset:
         """
         ends = [stop for _, stop in self.episode_bounds()]
         if steps not in ends:
-            raise ValueError(f"{steps} steps end inside an episode of this dataset; episodes end at rows {ends[:10]}...")
+            before = max((end for end in ends if end < steps), default=None)
+            after = min((end for end in ends if end > steps), default=None)
+            nearest = " and ".join(str(end) for end in (before, after) if end is not None)
+            raise ValueError(
+                f"{steps} steps end inside an episode of this dataset: pass an episode end, the nearest are {nearest}."
+            )
         return self.episodes(0, ends.index(steps) + 1)
 
     def save(self, path: str) -> None:
