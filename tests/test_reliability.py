@@ -236,16 +236,17 @@ def test_a_pets_cheetah_zip_of_release_0_2_0_runs_its_model_without_the_hooks_of
     assert resaved.model_hooks_release == "0.2.0" and resaved.policy.model_hooks == NO_HOOKS
 
 
-@pytest.mark.parametrize("release", ["0.3.0", "0.4.0"])
+@pytest.mark.parametrize("release, task", [("0.3.0", "half-cheetah"), ("0.4.0", "half-cheetah"), ("0.4.1", "swimmer")])
 @pytest.mark.parametrize("variant", ["pets", "poplin-p"])
-def test_half_cheetah_zips_of_earlier_releases_load_and_plan_as_they_did(variant, release, tmp_path):
+def test_zips_of_earlier_releases_load_and_plan_as_they_did(variant, release, task, tmp_path):
     """
-    Zips written by the 0.3.0 and 0.4.0 code (tests/data/make_legacy_0_3_0_zips.py) on HalfCheetah-v5, whose hooks
-    changed after each (0.4.0: the model's pitch as sine and cosine; 0.4.1: the policy's too): the same predictions,
-    plans and policy actions as that release gave right after saving them.
+    Zips written by earlier code (tests/data/make_legacy_0_3_0_zips.py) on tasks whose hooks changed after it:
+    HalfCheetah-v5 by 0.3.0 and 0.4.0 (0.4.0: the model's pitch as sine and cosine; 0.4.1: the policy's too),
+    Swimmer-v5 by 0.4.1 (0.4.2: the model's body angle as sine and cosine). The same predictions, plans and policy
+    actions as that release gave right after saving them.
     """
-    path = DATA / f"legacy-{release}-{variant}-half-cheetah.zip"
-    recorded = np.load(DATA / f"legacy-{release}-{variant}-half-cheetah.npz")
+    path = DATA / f"legacy-{release}-{variant}-{task}.zip"
+    recorded = np.load(DATA / f"legacy-{release}-{variant}-{task}.npz")
     loaded = POPLIN.load(path)
     assert loaded.sb3_poplin_version == release and loaded.model_hooks_release == release
     obs, actions = th.as_tensor(recorded["obs"]), th.as_tensor(recorded["actions"])

@@ -4,7 +4,7 @@ measured in one process (median of ``--repeats`` ``predict`` calls after warm-up
 per setting to benchmarks/RESULTS.md with the ratios to PETS.
 
     python benchmarks/speed/plan_time_variants.py [--setting paper|cpu|cheetah-cpu] [--repeats 5] [--threads 1]
-        [--forward-path fused|batched|members]
+        [--forward-path fused|batched|members] [--dtype float32|bfloat16]
 
 ``paper``: HalfCheetah-v5 sizes (17-dim obs, 6-dim action), population 500, horizon 30, 5 CEM
 iterations, 5 x (200, 200, 200, 200) ensemble, expectation propagation, policies [64, 64] (A) and
@@ -12,6 +12,8 @@ iterations, 5 x (200, 200, 200, 200) ensemble, expectation propagation, policies
 ``sb3_poplin/PETSCheetah-v0``'s ``poplin_cpu.yml`` entry (population 200, horizon 15, 3 iterations,
 5 x 3 x 128), the planner of the fidelity A/B and of issue 18's comparison. ``--forward-path`` forces the
 ensemble's forward path (``SB3_POPLIN_FORWARD_PATH``; default: the one this host chose, see ``sb3_poplin.kernels``).
+``--dtype bfloat16`` plans every variant with ``planning_dtype="bfloat16"``; ``--dtype both`` times each variant in
+both dtypes, alternating, and gives the fp32 / bf16 ratio per variant.
 """
 
 from __future__ import annotations
@@ -58,23 +60,43 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--forward-path", choices=["batched", "members", "fused"], default=None, help="force the forward path")
+    parser.add_argument("--dtype", choices=["float32", "bfloat16", "both"], default="float32", help="planning_dtype")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     if args.forward_path is not None:
         os.environ[kernels.PATH_ENV] = args.forward_path
     env_id, settings = SETTINGS[args.setting]
-    results = {name: plan_time(env_id, settings, variant, args.repeats) for name, variant in VARIANTS.items()}
+    dtypes = ["float32", "bfloat16"] if args.dtype == "both" else [args.dtype]
+    times: dict[str, dict[str, float]] = {name: {} for name in VARIANTS}
+    for name, variant in VARIANTS.items():
+        for dtype in dtypes:  # both dtypes of a variant back to back: their ratio is timed under the same load
+            times[name][dtype] = plan_time(env_id, {**settings, "planning_dtype": dtype}, variant, args.repeats)
+    results = {name: per_dtype[dtypes[-1]] for name, per_dtype in times.items()}
     pets = results["pets"]
     cells = ", ".join(f"{name} {t * 1000:.0f} ms ({t / pets:.2f}x)" for name, t in results.items())
+    if len(dtypes) == 2:
+        cells = ", ".join(
+            f"{name} fp32 {t['float32'] * 1000:.0f} ms, bf16 {t['bfloat16'] * 1000:.0f} ms "
+            f"({t['float32'] / t['bfloat16']:.2f}x)"
+            for name, t in times.items()
+        )
+        for name, t in times.items():
+            print(f"{name:16s} fp32 {t['float32'] * 1000:8.1f} ms  bf16 {t['bfloat16'] * 1000:8.1f} ms")
     command = "python " + " ".join(sys.argv)
     machine = describe_machine(args.threads)
     for name, t in results.items():
-        print(f"{name:16s} {t * 1000:8.1f} ms  {t / pets:5.2f}x PETS")
+        print(f"{name:16s} {t * 1000:8.1f} ms  {t / pets:5.2f}x PETS ({dtypes[-1]})")
     append_row(
         "Plan time of the variants against PETS (`benchmarks/plan_time_variants.py`)",
         "Median time of one single-env `predict` (a full plan), all variants in one process run; ratio to PETS in brackets.",
         ["date", "command", "setting", "time per plan (ratio to PETS)", "machine"],
-        [str(datetime.date.today()), f"`{command}`", f"{args.setting}: {env_id}", cells, machine],
+        [
+            str(datetime.date.today()),
+            f"`{command}`",
+            f"{args.setting}: {env_id}" + ("" if args.dtype == "float32" else f", {args.dtype}"),
+            cells,
+            machine,
+        ],
     )
 
 

@@ -10,12 +10,14 @@ directory, comes first on ``sys.path``, so the checkout on ``PYTHONPATH`` is imp
     PYTHONPATH=/tmp/sb3p030 python tests/data/make_legacy_0_3_0_zips.py tests/data
     # 0.4.0 (the model on the pitch's sine and cosine, the policy on the raw observation): commit 7123a35
     PYTHONPATH=/tmp/sb3p040 python tests/data/make_legacy_0_3_0_zips.py tests/data 0.4.0
+    # Swimmer-v5 with 0.4.1's raw hooks (its hooks changed after 0.4.1): commit 09283f1
+    PYTHONPATH=/tmp/sb3p041 python tests/data/make_legacy_0_3_0_zips.py tests/data 0.4.1 Swimmer-v5
 
-It writes ``legacy-<release>-<variant>-half-cheetah.zip`` for PETS and POPLIN-P (tiny agents: one random episode, one
-model fit and distillation, a few planned steps; under 100 KB each) and ``legacy-<release>-<variant>-half-cheetah.npz``:
-observations (x kept, as the task makes the env), scaled actions, the next observations 0.3.0's model predicts for
-them (expectation over the members), the actions 0.3.0 plans for the observations right after loading its own zip
-and, for POPLIN-P, its policy network's actions.
+It writes ``legacy-<release>-<variant>-<task>.zip`` (task: ``half-cheetah``, ``swimmer``) for PETS and POPLIN-P
+(tiny agents: one random episode, one model fit and distillation, a few planned steps; under 100 KB each) and
+``legacy-<release>-<variant>-<task>.npz``: observations (positions kept, as the task makes the env), scaled actions,
+the next observations that release's model predicts for them (expectation over the members), the actions it plans for
+the observations right after loading its own zip and, for POPLIN-P, its policy network's actions.
 """
 
 import sys
@@ -29,7 +31,7 @@ import sb3_poplin
 from sb3_poplin import POPLIN
 from sb3_poplin.tasks import make_env
 
-ENV = "HalfCheetah-v5"
+TASK_NAMES = {"HalfCheetah-v5": "half-cheetah", "Swimmer-v5": "swimmer"}
 TINY = dict(horizon=4, population_size=16, num_elites=4, cem_iterations=2, ensemble_size=2, dynamics_net_arch=(16, 16))
 
 
@@ -44,9 +46,9 @@ class StopAt(BaseCallback):
         return self.num_timesteps < self.steps
 
 
-def states(count: int, seed: int) -> np.ndarray:
+def states(env_id: str, count: int, seed: int) -> np.ndarray:
     """Observations of a random-action episode: the first ``count`` after the reset."""
-    env: gym.Env = make_env(ENV)
+    env: gym.Env = make_env(env_id)
     env.action_space.seed(seed)
     found = [env.reset(seed=seed)[0]]
     while len(found) < count:
@@ -54,21 +56,23 @@ def states(count: int, seed: int) -> np.ndarray:
     return np.stack(found).astype(np.float32)
 
 
-def main(out: str, expected: str = "0.3.0") -> None:
+def main(out: str, expected: str = "0.3.0", env_id: str = "HalfCheetah-v5") -> None:
     th.set_num_threads(1)
     with open(f"{sb3_poplin.__path__[0]}/version.txt") as file:
         release = file.read().strip()
     assert release == expected, f"run this with sb3_poplin {expected} on PYTHONPATH, not {release}"
     for variant in ("pets", "poplin-p"):
-        path = f"{out}/legacy-{release}-{variant}-half-cheetah.zip"
+        name = f"{out}/legacy-{release}-{variant}-{TASK_NAMES[env_id]}"
+        path = f"{name}.zip"
         extra = dict(policy_net_arch=(8,), policy_epochs=2) if variant == "poplin-p" else {}
-        model = POPLIN(variant, ENV, seed=0, model_epochs=2, **TINY, **extra)
+        model = POPLIN(variant, env_id, seed=0, model_epochs=2, **TINY, **extra)
         model.learn(2000, callback=StopAt(1010))  # a random episode, a model fit, 10 planned steps
         model.save(path)
 
         loaded = POPLIN.load(path)
-        obs = states(20, seed=1)[::5]  # 4 states along a random episode
-        actions = np.random.default_rng(2).uniform(-1.0, 1.0, (len(obs), 6)).astype(np.float32)
+        obs = states(env_id, 20, seed=1)[::5]  # 4 states along a random episode
+        action_dim = loaded.action_space.shape[0]
+        actions = np.random.default_rng(2).uniform(-1.0, 1.0, (len(obs), action_dim)).astype(np.float32)
         with th.no_grad():
             predicted, _ = loaded.policy.dynamics.propagate(
                 th.as_tensor(obs).unsqueeze(1), th.as_tensor(actions).unsqueeze(1), "expectation"
@@ -78,8 +82,8 @@ def main(out: str, expected: str = "0.3.0") -> None:
         if variant == "poplin-p":
             loaded.control = "policy"
             arrays["policy_actions"] = loaded.predict(obs)[0]
-        np.savez(f"{out}/legacy-{release}-{variant}-half-cheetah.npz", **arrays)
+        np.savez(f"{name}.npz", **arrays)
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:3])
+    main(*sys.argv[1:4])
