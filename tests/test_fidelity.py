@@ -365,6 +365,27 @@ def test_half_cheetah_v5_networks_see_sin_cos_of_the_pitch_and_not_x():
     assert hooks["obs_preproc"] is not None and hooks["policy_obs_preproc"] == hooks["obs_preproc"]
 
 
+def test_swimmer_v5_model_sees_sin_cos_of_the_body_angle_and_not_x_y():
+    model = tiny("poplin-p", "Swimmer-v5")
+    dynamics, actor = model.policy.dynamics, model.policy.actor
+    assert dynamics.in_dim == 7 + 2 + 2 and dynamics.out_dim == 10  # x, y dropped, the angle as two features
+    obs = th.randn(5, 10) * 3
+    action = th.rand(5, 2) * 2 - 1
+    features = th.cat([obs[:, 3:], th.sin(obs[:, 2:3]), th.cos(obs[:, 2:3])], dim=1)
+    assert th.equal(dynamics.raw_input(obs, action), th.cat([features, action], dim=1))
+    turned = obs.clone()
+    turned[:, 2] += 2 * math.pi
+    assert th.allclose(dynamics.raw_input(turned, action), th.cat([features, action], dim=1), atol=1e-5)
+    assert dynamics.training_target(obs, turned).equal(turned - obs)
+    assert actor.in_dim == 8  # the policy: the observation without x, y (unchanged in 0.4.2)
+    with th.no_grad():
+        moved = obs.clone()
+        moved[:, :2] += 100.0
+        assert th.equal(actor(moved), actor(obs))
+    hooks = make_task("Swimmer-v5").model_hooks("0.4.1")  # zips of 0.4.1 and earlier: the raw model input
+    assert hooks["obs_preproc"] is None and hooks["model_input_exclude"] == [0, 1]
+
+
 def test_pets_cheetah_model_sees_sin_cos_of_the_angle_and_not_the_velocity():
     model = tiny("pets", CHEETAH)
     dynamics = model.policy.dynamics
