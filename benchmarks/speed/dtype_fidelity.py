@@ -44,10 +44,10 @@ DTYPES = ("float32", "bfloat16")
 PAPER_BUDGET = dict(horizon=30, population_size=500, num_elites=50, cem_iterations=5)
 
 
-def controllers(agent: POPLIN, seed: int, budget: str) -> dict[str, MPCController]:
+def controllers(agent: POPLIN, seed: int, budget: str, dtypes: tuple[str, ...] = DTYPES) -> dict[str, MPCController]:
     """The agent's own search at its (or the paper's) budget, one controller per dtype, each seeded with ``seed``."""
     overrides = PAPER_BUDGET if budget == "paper" else {}
-    return {dtype: replanner(agent, agent.variant, seed=seed, planning_dtype=dtype, **overrides) for dtype in DTYPES}
+    return {dtype: replanner(agent, agent.variant, seed=seed, planning_dtype=dtype, **overrides) for dtype in dtypes}
 
 
 def action_changes(
@@ -60,7 +60,7 @@ def action_changes(
     """
     plans = controllers(agent, seed, budget)
     fp32, bf16 = plans["float32"], plans["bfloat16"]
-    reseeded = controllers(agent, seed + 1, budget)["float32"]
+    reseeded = controllers(agent, seed + 1, budget, ("float32",))["float32"]
     env = make_env(env_id)
     obs, _ = env.reset(seed=seed)
     state: np.ndarray | None = None

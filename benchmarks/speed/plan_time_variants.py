@@ -13,7 +13,7 @@ iterations, 5 x (200, 200, 200, 200) ensemble, expectation propagation, policies
 5 x 3 x 128), the planner of the fidelity A/B and of issue 18's comparison. ``--forward-path`` forces the
 ensemble's forward path (``SB3_POPLIN_FORWARD_PATH``; default: the one this host chose, see ``sb3_poplin.kernels``).
 ``--dtype bfloat16`` plans every variant with ``planning_dtype="bfloat16"``; ``--dtype both`` times each variant in
-both dtypes, alternating, and gives the fp32 / bf16 ratio per variant.
+both dtypes, back to back, and gives the fp32 / bf16 ratio per variant.
 """
 
 from __future__ import annotations
@@ -73,8 +73,9 @@ def main() -> None:
             times[name][dtype] = plan_time(env_id, {**settings, "planning_dtype": dtype}, variant, args.repeats)
     results = {name: per_dtype[dtypes[-1]] for name, per_dtype in times.items()}
     pets = results["pets"]
-    cells = ", ".join(f"{name} {t * 1000:.0f} ms ({t / pets:.2f}x)" for name, t in results.items())
-    if len(dtypes) == 2:
+    if len(dtypes) == 1:
+        cells = ", ".join(f"{name} {t * 1000:.0f} ms ({t / pets:.2f}x)" for name, t in results.items())
+    else:
         cells = ", ".join(
             f"{name} fp32 {t['float32'] * 1000:.0f} ms, bf16 {t['bfloat16'] * 1000:.0f} ms "
             f"({t['float32'] / t['bfloat16']:.2f}x)"
