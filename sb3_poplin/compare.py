@@ -187,6 +187,7 @@ class Job:
     :param params: ``-params`` overrides, as ``KEY:VALUE`` strings
     :param log_folder: rl-zoo3 log folder (absolute)
     :param python: interpreter that runs the zoo
+    :param policy_eval_freq: period of the policy-control evaluation of POPLIN-A/P runs (``None``: ``eval_freq``)
     """
 
     algo: str
@@ -199,6 +200,7 @@ class Job:
     params: list[str]
     log_folder: str
     python: str
+    policy_eval_freq: int | None = None
 
     @property
     def zoo_algo(self) -> str:
@@ -232,6 +234,8 @@ class Job:
             command += ["--resume", os.path.join(self.log_folder, resume)]
         command += ["-n", str(self.n_timesteps), "--eval-freq", str(self.eval_freq)]
         command += ["--eval-episodes", str(self.eval_episodes)]
+        if self.policy_eval_freq is not None:
+            command += ["--policy-eval-freq", str(self.policy_eval_freq)]
         if self.conf_file is not None:
             command += ["--conf-file", self.conf_file]
         if self.params:
@@ -251,6 +255,7 @@ class Job:
             and args.get("n_timesteps") == self.n_timesteps
             and args.get("eval_freq") == self.eval_freq
             and args.get("eval_episodes") == self.eval_episodes
+            and args.get("policy_eval_freq") == self.policy_eval_freq
             and conf_identity(args.get("conf_file")) == conf_identity(self.conf_file)
             and same_settings(expected, args.get("hyperparams") or {})
         )
@@ -429,11 +434,25 @@ def run_local(jobs: list[Job], n_parallel: int, force: bool) -> list[JobResult]:
     :param force: train again even if a complete run exists
     :return: the results, in the jobs' order
     """
+    futures: dict[int, concurrent.futures.Future[JobResult]] = {}
     with concurrent.futures.ThreadPoolExecutor(max_workers=n_parallel) as pool:
-        futures = [pool.submit(execute, job, force) for job in jobs]
-        for future in concurrent.futures.as_completed(futures):
+        for index in execution_order(jobs):
+            futures[index] = pool.submit(execute, jobs[index], force)
+        for future in concurrent.futures.as_completed(futures.values()):
             report_progress(future.result())
-    return [future.result() for future in futures]
+    return [futures[index].result() for index in range(len(jobs))]
+
+
+def execution_order(jobs: list[Job]) -> list[int]:
+    """
+    The order in which runs start: seed by seed, each seed's algorithms together (task by task), so that the
+    algorithms' first seeds finish first and a partial comparison is a paired one.
+
+    :param jobs: the jobs (algorithm-major, as :func:`plan_jobs` makes them)
+    :return: indices into ``jobs``
+    """
+    seeds = sorted({job.seed for job in jobs})
+    return sorted(range(len(jobs)), key=lambda index: (seeds.index(jobs[index].seed), index))
 
 
 def run_ray(jobs: list[Job], address: str, n_parallel: int, force: bool) -> list[JobResult]:
@@ -1083,6 +1102,7 @@ def plan_jobs(options: argparse.Namespace) -> list[Job]:
                         params=algo_params,
                         log_folder=log_folder,
                         python=options.python,
+                        policy_eval_freq=options.policy_eval_freq if algo == "poplin" or algo in VARIANTS else None,
                     )
                 )
     return jobs
@@ -1113,6 +1133,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("-n", "--n-timesteps", type=int, help="training steps of every run (default: the budget's)")
     parser.add_argument("--n-evals", type=int, default=10, help="evaluations per run (sets --eval-freq); default 10")
     parser.add_argument("--eval-freq", type=int, help="evaluation period in steps (default: n_timesteps / n_evals)")
+    parser.add_argument(
+        "--policy-eval-freq",
+        type=int,
+        help="period of POPLIN-A/P's policy-control evaluation in steps (default: --eval-freq); it plans nothing, so "
+        "it can be far more frequent than the MPC evaluation",
+    )
     parser.add_argument(
         "--eval-episodes",
         type=int,
@@ -1154,6 +1180,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error("--eval-episodes must be >= 2 (rl-zoo3's all_plots needs it)")
     if options.jobs < 1 or options.n_evals < 1 or options.paper_window < 1:
         parser.error("--jobs, --n-evals and --paper-window must be >= 1")
+    if options.policy_eval_freq is not None and options.policy_eval_freq < 1:
+        parser.error("--policy-eval-freq must be >= 1")
     return options
 
 

@@ -21,7 +21,8 @@ argument parser is built. This module adds ``poplin`` to that table (and an optu
   rebuild the same env.
 * POPLIN-A/P runs also evaluate policy control (the distilled network alone) at the same steps as the
   zoo's MPC evaluation and write ``evaluations_policy.npz`` next to ``evaluations.npz``
-  (``--no-policy-eval`` turns it off).
+  (``--no-policy-eval`` turns it off; ``--policy-eval-freq N`` evaluates it every ``N`` steps instead: policy control
+  plans nothing, so it can be evaluated far more often than MPC).
 * ``train --checkpoints`` saves a checkpoint after every episode (``sb3_poplin.resume``) and ``train --resume RUN_DIR``
   continues a killed run in its folder from its last checkpoint, with nothing recorded twice or lost.
 * ``compare`` runs the head-to-head of algorithms x tasks x seeds and writes its report (``sb3_poplin.compare``).
@@ -192,6 +193,8 @@ class PoplinExperimentManager(ExperimentManager):
 
     #: add a policy-control evaluation next to the zoo's MPC evaluation (POPLIN-A/P runs)
     policy_eval: ClassVar[bool] = True
+    #: its period in env steps (``None``: the MPC evaluation's, ``--eval-freq``)
+    policy_eval_freq: ClassVar[int | None] = None
     #: save a checkpoint after every episode (``sb3_poplin.resume``)
     checkpoints: ClassVar[bool] = False
     #: continue the run in this folder from its last checkpoint (implies ``checkpoints``)
@@ -200,6 +203,8 @@ class PoplinExperimentManager(ExperimentManager):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        if self.policy_eval_freq is not None:
+            self.args.policy_eval_freq = self.policy_eval_freq  # in args.yml: the run's settings identify it
         self.checkpoints_asked = self.checkpoints or self.resume_dir is not None
         self.checkpointing = self.checkpoints_asked
         self.restored = False
@@ -243,13 +248,16 @@ class PoplinExperimentManager(ExperimentManager):
         for callback in existing:
             if callback.log_path is None:
                 callback.log_path = self.save_path
-        if existing or not self.policy_eval or self.eval_freq <= 0 or self.poplin_variant not in POLICY_VARIANTS:
+        if existing or not self.policy_eval or self.poplin_variant not in POLICY_VARIANTS:
             return
-        # same frequency (already per env) and episodes as the zoo's EvalCallback: matched steps
+        # by default the zoo's EvalCallback's frequency (already per env) and episodes: matched steps
+        eval_freq = self.eval_freq if self.policy_eval_freq is None else max(self.policy_eval_freq // self.n_envs, 1)
+        if eval_freq <= 0:
+            return
         self.callbacks.append(
             ControlModesEvalCallback(
                 eval_env=self.create_envs(self.n_eval_envs, eval_env=True),
-                eval_freq=self.eval_freq,
+                eval_freq=eval_freq,
                 n_eval_episodes=self.n_eval_episodes,
                 log_path=self.save_path,
                 modes=("policy",),
@@ -436,16 +444,21 @@ def _train(args: Sequence[str]) -> None:
     """
     rl-zoo3 ``train`` with :class:`PoplinExperimentManager` and the default ``--conf-file``.
 
-    :param args: the ``train`` command line (plus ``--no-policy-eval``)
+    :param args: the ``train`` command line (plus ``--no-policy-eval``, ``--policy-eval-freq``, ``--checkpoints`` and
+        ``--resume``)
     """
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument("--no-policy-eval", action="store_true")
+    parser.add_argument("--policy-eval-freq", type=int)
     parser.add_argument("--checkpoints", action="store_true")
     parser.add_argument("--resume")
     own, rest = parser.parse_known_args(list(args))
     if own.resume is not None and not os.path.isdir(own.resume):
         raise SystemExit(f"--resume {own.resume}: no such run folder. Give the folder of the run to continue.")
+    if own.policy_eval_freq is not None and own.policy_eval_freq < 1:
+        raise SystemExit(f"--policy-eval-freq must be >= 1 (env steps), got {own.policy_eval_freq}.")
     PoplinExperimentManager.policy_eval = not own.no_policy_eval
+    PoplinExperimentManager.policy_eval_freq = own.policy_eval_freq
     PoplinExperimentManager.checkpoints = own.checkpoints
     PoplinExperimentManager.resume_dir = own.resume
     # rl_zoo3.train() builds its ExperimentManager from this module attribute
@@ -537,7 +550,8 @@ USAGE = f"""usage: sb3-poplin-zoo COMMAND [ARGS...]   (or: python -m sb3_poplin.
 rl-zoo3 with POPLIN registered as --algo {ALGO}. Commands:
   train         rl-zoo3 train; --conf-file defaults to sb3_poplin/hyperparams/<algo>.yml for
                 {", ".join(PACKAGED_ALGOS)} when it has the env; --no-policy-eval skips the
-                policy-control evaluation (evaluations_policy.npz) of POPLIN-A/P runs;
+                policy-control evaluation (evaluations_policy.npz) of POPLIN-A/P runs,
+                --policy-eval-freq N makes it every N steps (default: --eval-freq);
                 --checkpoints saves a checkpoint after every episode, --resume RUN_DIR continues
                 a killed run from its last one
   compare       the head-to-head: algorithms x tasks x seeds, run (resumable) and reported

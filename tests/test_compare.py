@@ -105,6 +105,30 @@ def test_compare_runs_poplin_variants_by_name(tmp_path: Path) -> None:
     assert not jobs["pets"].matches(args | {"conf_file": "/elsewhere/checkout/sb3_poplin/hyperparams/other.yml"})
 
 
+def test_policy_control_is_evaluated_at_its_own_period_and_seeds_run_paired(tmp_path: Path) -> None:
+    """
+    ``--policy-eval-freq`` reaches the POPLIN runs' command and identifies their runs (a run made without it, or with
+    another period, is another run); runs start seed by seed, every algorithm of a seed together.
+    """
+    args = ["--algos", "pets", "poplin-p", "sac", "--envs", "Pendulum-v1", "--seeds", "0", "1", "-n", "4000"]
+    options = compare_module.parse_args([*args, "--eval-freq", "2000", "--policy-eval-freq", "500", "--log-folder", "x"])
+    jobs = compare_module.plan_jobs(options)
+    poplin_p = next(job for job in jobs if job.algo == "poplin-p")
+    command = poplin_p.command()
+    assert command[command.index("--policy-eval-freq") + 1] == "500"
+    assert command[command.index("--eval-freq") + 1] == "2000"
+    sac = next(job for job in jobs if job.algo == "sac")
+    assert sac.policy_eval_freq is None and "--policy-eval-freq" not in sac.command()
+    recorded = {"algo": "poplin", "env": "Pendulum-v1", "seed": 0, "n_timesteps": 4000, "eval_freq": 2000}
+    recorded |= {"eval_episodes": 10, "conf_file": poplin_p.conf_file, "hyperparams": {"policy": "poplin-p"}}
+    assert poplin_p.matches(recorded | {"policy_eval_freq": 500})
+    assert not poplin_p.matches(recorded) and not poplin_p.matches(recorded | {"policy_eval_freq": 1000})
+    order = [(jobs[index].algo, jobs[index].seed) for index in compare_module.execution_order(jobs)]
+    assert order == [("pets", 0), ("poplin-p", 0), ("sac", 0), ("pets", 1), ("poplin-p", 1), ("sac", 1)]
+    with pytest.raises(SystemExit):
+        compare_module.parse_args([*args, "--policy-eval-freq", "0"])
+
+
 def write_fake_run(job, run_dir: Path, eval_returns: list[float], train_returns: list[float], episode: int) -> None:
     """A run folder as the zoo and compare.py leave it (no model zip): args, config, evaluations, monitor, marker."""
     folder = run_dir / job.env

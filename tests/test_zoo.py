@@ -59,10 +59,14 @@ def load_yaml(path: Path) -> dict:
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A POPLIN-P run on Pendulum-v1 through the zoo: one random episode, one planned, one evaluation."""
+    """
+    A POPLIN-P run on Pendulum-v1 through the zoo: one random episode, one planned, one MPC evaluation at its end and a
+    policy-control evaluation every 200 steps (``--policy-eval-freq``).
+    """
     folder = tmp_path_factory.mktemp("zoo")
     zoo_train = [sys.executable, "-m", "sb3_poplin.zoo", "train", "--algo", "poplin", "--env", "Pendulum-v1"]
     args = ["-n", "400", "--num-threads", "1", "--seed", "0", "-f", "logs", "--eval-freq", "400", "--eval-episodes", "2"]
+    args += ["--policy-eval-freq", "200"]
     run([*zoo_train, *args, "-params", *TINY_POPLIN], folder)
     return folder
 
@@ -72,11 +76,12 @@ def test_train_writes_the_zoo_files(trained: Path) -> None:
     assert (run_dir / "Pendulum-v1.zip").is_file()
     with np.load(run_dir / "evaluations.npz") as mpc, np.load(run_dir / "evaluations_policy.npz") as policy:
         assert mpc["timesteps"].tolist() == [400] and mpc["results"].shape == (1, 2)
-        assert policy["timesteps"].tolist() == [400] and policy["results"].shape == (1, 2)
+        assert policy["timesteps"].tolist() == [200, 400] and policy["results"].shape == (2, 2)
     config = dict(load_yaml(run_dir / "Pendulum-v1" / "config.yml"))
     assert config["policy"] == "poplin-p" and config["horizon"] == 5 and config["train_freq"] == [1, "episode"]
     args = dict(load_yaml(run_dir / "Pendulum-v1" / "args.yml"))
     assert args["conf_file"] == str(presets.config_path("poplin"))
+    assert args["policy_eval_freq"] == 200  # a setting of the run: compare finds the run by it
 
 
 def test_enjoy_loads_and_plays(trained: Path) -> None:
