@@ -809,6 +809,7 @@ class MPCStep(NamedTuple):
     actions: np.ndarray  # [n_envs, A] in env units
     state: np.ndarray  # [n_envs, S] warm start for the next step (MPCPlanner.state_dim: the shifted mean, carried elites)
     plan: PlanResult  # the plan, on the device
+    fallbacks: int = 0  # envs whose plan found no finite candidate (the fallback action was executed)
 
 
 class MPCController:
@@ -825,7 +826,7 @@ class MPCController:
         self.planner = planner
         self.device = th.device(device)
         self.generator = th.Generator(device=self.device)
-        self.warm_start: th.Tensor | None = None  # the agent's own warm start (predict without a state)
+        self.warm_start: th.Tensor | None = None  # the training rollout's own warm start (collect)
         self._return_sum = th.zeros((), device=self.device)
         self._plans = 0
         self._fallbacks = 0
@@ -840,10 +841,7 @@ class MPCController:
 
     def _start_state(self, n_envs: int, state: np.ndarray | None, episode_start: np.ndarray | None) -> th.Tensor:
         planner = self.planner
-        own = self.warm_start
-        if state is None and episode_start is None and own is not None and own.shape == (n_envs, planner.state_dim):
-            start = own
-        elif state is None:
+        if state is None:
             start = planner.initial_state(n_envs, self.device)
         else:
             start = th.as_tensor(state, dtype=th.float32, device=self.device)
@@ -858,32 +856,56 @@ class MPCController:
             start = th.where(reset.unsqueeze(1), planner.initial_state(n_envs, self.device), start)
         return start
 
-    def step(self, obs: th.Tensor, state: np.ndarray | None = None, episode_start: np.ndarray | None = None) -> MPCStep:
+    def step(
+        self,
+        obs: th.Tensor,
+        state: np.ndarray | None = None,
+        episode_start: np.ndarray | None = None,
+        generator: th.Generator | None = None,
+    ) -> MPCStep:
         """
-        Plan the actions of a batch of envs. Without ``state`` and ``episode_start`` the controller continues from
-        its own warm start (as during training) and keeps the new one.
+        Plan the actions of a batch of envs from the given warm start: a function of its arguments and the
+        generator's draws, which leaves the controller's own warm start and statistics alone (``predict``).
 
         :param obs: observations ``[n_envs, o]`` on the device
         :param state: the state returned by the previous step for these envs, or None (fresh plans)
         :param episode_start: per-env flags; True starts that env's plan afresh
+        :param generator: the random generator to plan with; ``None``: the controller's own
         """
-        internal = state is None and episode_start is None
-        plan = self.planner.plan(obs, self._start_state(obs.shape[0], state, episode_start), self.generator)
-        if internal:
-            self.warm_start = plan.next_state
-        self._return_sum = self._return_sum + plan.elite_return.sum()
+        start = self._start_state(obs.shape[0], state, episode_start)
+        return self._step(obs, start, self.generator if generator is None else generator)
+
+    def collect(self, obs: th.Tensor) -> MPCStep:
+        """
+        Plan the actions of the training rollout: from the controller's own warm start (reset per env by
+        :meth:`episodes_ended`) with its own generator; keeps the new warm start and counts the plan statistics.
+
+        :param obs: observations ``[n_envs, o]`` on the device
+        """
+        own = self.warm_start
+        if own is not None and own.shape == (obs.shape[0], self.planner.state_dim):
+            start = own
+        else:
+            start = self.planner.initial_state(obs.shape[0], self.device)
+        step = self._step(obs, start, self.generator)
+        self.warm_start = step.plan.next_state
+        self._return_sum = self._return_sum + step.plan.elite_return.sum()
         self._plans += obs.shape[0]
+        self._fallbacks += step.fallbacks
+        return step
+
+    def _step(self, obs: th.Tensor, start: th.Tensor, generator: th.Generator) -> MPCStep:
+        plan = self.planner.plan(obs, start, generator)
         # one device-to-host transfer for the actions, the fallback flags and the warm starts
         actions = self.planner.to_env_units(plan.action)
         host = th.cat([actions, plan.fallback.unsqueeze(1).float(), plan.next_state], dim=1).cpu().numpy()
         n_actions = actions.shape[1]
         fallbacks = int((host[:, n_actions] > 0).sum())
         if fallbacks:
-            self._on_fallback(fallbacks)
-        return MPCStep(host[:, :n_actions], host[:, n_actions + 1 :], plan)
+            self._warn_fallback()
+        return MPCStep(host[:, :n_actions], host[:, n_actions + 1 :], plan, fallbacks)
 
-    def _on_fallback(self, count: int) -> None:
-        self._fallbacks += count
+    def _warn_fallback(self) -> None:
         if not self._fallback_warned:
             self._fallback_warned = True
             warnings.warn(
@@ -901,7 +923,10 @@ class MPCController:
             self.warm_start = th.where(reset.unsqueeze(1), fresh, self.warm_start)
 
     def pop_statistics(self) -> dict[str, float | int]:
-        """The plan statistics since the last call (empty without plans): mean elite return and fallbacks."""
+        """
+        The training rollout's plan statistics since the last call (empty without plans): mean elite return and
+        fallbacks (``predict``'s plans are not counted; a fallback there is warned about all the same).
+        """
         stats: dict[str, float | int] = {}
         if self._plans:
             stats = {"plan/elite_return": (self._return_sum / self._plans).item(), "plan/fallbacks": self._fallbacks}
@@ -922,10 +947,21 @@ class MPCController:
         """
         check_state_keys("MPC controller", state, ("generator", "warm_start"), strict)
         if "generator" in state:
+            saved = state["generator"]
+            if not isinstance(saved, th.Tensor) or saved.dtype != th.uint8:
+                raise ValueError(
+                    "The MPC controller's 'generator' state must be the uint8 tensor of torch.Generator.get_state(), got "
+                    f"{type(saved).__name__} {getattr(saved, 'dtype', '')}: pass back what state_dict() returned."
+                )
             try:
-                self.generator.set_state(state["generator"].cpu())
-            except (RuntimeError, TypeError):  # saved on another kind of device: keep the seeded generator
-                warnings.warn("The planner's random state was saved on another device and is not restored.", stacklevel=2)
+                self.generator.set_state(saved.cpu())
+            except (RuntimeError, TypeError):  # a state of another kind of device (sizes differ): keep the seeded one
+                warnings.warn(
+                    f"The planner's random state ({saved.numel()} bytes) does not fit this device's generator "
+                    f"({self.device.type}): saved on another kind of device? It is not restored; the generator keeps "
+                    "its seed.",
+                    stacklevel=2,
+                )
         warm = state.get("warm_start")
         # a warm start of another width (a zip loaded with another optimizer, e.g. optimizer="icem"): plan afresh
         if warm is not None and warm.shape[-1] != self.planner.state_dim:

@@ -19,6 +19,7 @@ from collections.abc import Sequence
 from itertools import pairwise
 from typing import Any
 
+import numpy as np
 import torch as th
 import torch.nn.functional as F
 from gymnasium import spaces
@@ -249,6 +250,8 @@ class POPLINPolicy(BasePolicy):
         ``model_input_exclude``
     :param policy_obs_preproc: the policy network's input features from raw observations (instead of
         ``policy_input_exclude``); ``None``: the observation without ``policy_input_exclude``
+    :param normalize_images: SB3's base-policy option (saved by ``policy.save`` and given back by
+        ``POPLINPolicy.load``); observations are flat vectors here, never images
     """
 
     def __init__(
@@ -271,10 +274,11 @@ class POPLINPolicy(BasePolicy):
         standardise_targets: bool = False,
         policy_input_exclude: Sequence[int] | None = None,
         policy_obs_preproc: ObsPreproc | None = None,
+        normalize_images: bool = True,
     ) -> None:
-        super().__init__(observation_space, action_space, squash_output=True)
+        super().__init__(observation_space, action_space, squash_output=True, normalize_images=normalize_images)
         assert isinstance(observation_space, spaces.Box) and isinstance(action_space, spaces.Box)
-        obs_dim, action_dim = int(observation_space.shape[0]), int(action_space.shape[0])
+        obs_dim, action_dim = int(observation_space.shape[0]), int(np.prod(action_space.shape))  # flat actions
         self.ensemble_size = ensemble_size
         self.dynamics_net_arch = list(dynamics_net_arch)
         self.model_input_exclude = list(model_input_exclude)

@@ -16,6 +16,7 @@ period with MPC.
 
 from __future__ import annotations
 
+import hashlib
 import inspect
 import io
 import math
@@ -32,6 +33,7 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.save_util import load_from_zip_file, recursive_getattr, save_to_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, TensorDict
 
 from sb3_poplin import saving, variants
@@ -63,8 +65,11 @@ class POPLIN(OffPolicyAlgorithm):
 
     :param policy: the variant: ``"pets"`` (CEM over action sequences), ``"rs"`` (random shooting),
         ``"poplin-a"`` (CEM over action noise around a policy network's proposals) or ``"poplin-p"``
-        (CEM over noise on the policy network's parameters)
-    :param env: env id or (Vec)Env with a Box action space and a flat Box observation space
+        (CEM over noise on the policy network's parameters); or one of the paper's named configurations
+        (``"poplin-a/replan"``, ``"poplin-p/sep/bc"``, ...: :data:`sb3_poplin.variants.NAMED_CONFIGURATIONS`), which
+        sets the variant and its options (``proposal``, ``noise``, ``distillation``)
+    :param env: env id or (Vec)Env with a Box action space (any shape: the planner works on the flattened actions, a
+        ``reward_fn`` gets them flat) and a flat Box observation space
     :param horizon: planning horizon H
     :param population_size: candidates per CEM iteration (random shooting: the number of samples)
     :param num_elites: elites per CEM iteration
@@ -147,9 +152,13 @@ class POPLIN(OffPolicyAlgorithm):
     :param seed: random seed (also seeds the planner's generator)
     :param device: ``"auto"``, ``"cpu"`` or ``"cuda"``
     :param _init_setup_model: build the networks at construction (SB3 interface)
+    :param policy_kwargs: not taken: POPLIN's networks are set by its own keyword arguments (``policy_net_arch``,
+        ``dynamics_net_arch``, ``ensemble_size``, ...); giving it raises a ``TypeError`` that names them
     """
 
-    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {name: POPLINPolicy for name in variants.VARIANTS}
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        name: POPLINPolicy for name in (*variants.VARIANTS, *variants.NAMED_CONFIGURATIONS)
+    }
     policy: POPLINPolicy
     mpc: MPCController
     distiller: Distiller | None
@@ -213,9 +222,18 @@ class POPLIN(OffPolicyAlgorithm):
         seed: int | None = None,
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
+        policy_kwargs: dict[str, Any] | None = None,
     ) -> None:
+        if policy_kwargs is not None:
+            raise TypeError(
+                f"POPLIN takes no policy_kwargs (got {policy_kwargs!r}): its networks are set by its own keyword "
+                "arguments: policy_net_arch (the policy network's hidden widths), dynamics_net_arch and ensemble_size "
+                "(the model), policy_learning_rate, model_learning_rate. E.g. POPLIN('poplin-p', env, "
+                "policy_net_arch=[64, 64], dynamics_net_arch=[200, 200, 200])."
+            )
         given = {name: value for name, value in locals().items() if name in variants.SETTINGS}
         if isinstance(policy, str):
+            policy, given = variants.apply_configuration(policy, given, DEFAULT_SETTINGS)
             self.variant = variants.variant(policy).name
         elif _init_setup_model:
             raise ValueError(f"policy must be a variant name, one of {list(self.policy_aliases)}; got {policy!r}")
@@ -282,6 +300,7 @@ class POPLIN(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         self._collect_settings()
         self.__dict__.pop("task_model_hooks", None)  # 0.3.0 zips' data (saving.check_saved_agent read it)
+        self.__dict__.pop("_collecting", None)  # zips of <= 0.4.2: a flag of the rollout, no longer used
         reward_fn, termination_fn, model_hooks, learned_reward = resolve_task(
             self.task_id,
             self.user_reward_fn,
@@ -334,7 +353,6 @@ class POPLIN(OffPolicyAlgorithm):
                 target=settings.distill_target,
                 whitening=settings.whitening,
             )
-        self._collecting = False  # True while SB3's rollout collection asks for an action
 
     @property
     def planner(self) -> MPCPlanner:
@@ -356,40 +374,85 @@ class POPLIN(OffPolicyAlgorithm):
         deterministic: bool = False,
     ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
         """
-        Plan actions for one observation or a VecEnv batch (all envs in one batched plan).
+        The action for one observation or a VecEnv batch: planned with the model (``control="mpc"``, all envs in
+        one batched plan) or the policy network's (``control="policy"``).
 
-        The returned state is the planner's warm start (the shifted CEM mean, one row per env, as a numpy array);
-        pass it back with ``episode_start`` as ``evaluate_policy`` does. Without state and episode_start the agent
-        keeps its own warm start between calls (as during training). Planning is stochastic either way;
-        ``deterministic`` is accepted for SB3 compatibility and executes the final CEM mean, as in the paper.
+        Under MPC the returned state is the planner's warm start (the shifted CEM solution, one row per env, as a
+        numpy array): pass it back with ``episode_start``, as ``evaluate_policy`` does, so that each plan starts from
+        the previous step's; ``state=None`` plans from a fresh start. The action is a function of the arguments:
+        with ``deterministic=True`` the planner's random numbers are a fixed function of the agent's seed and the
+        inputs (the same call gives the same action, also after save/load); with ``deterministic=False`` they are
+        fresh draws from the planner's generator. Either way the executed action is the planner's (PETS/CEM: the
+        final mean's first action, as in the paper). The training rollout plans with its own warm start instead
+        (:meth:`_sample_action`).
 
         :param observation: observation(s) in env units
         :param state: warm start returned by the previous call, or None
         :param episode_start: per-env flags; True resets that env's warm start
-        :param deterministic: SB3 interface (see above)
-        :return: actions in env units and the new warm start
+        :param deterministic: plan with random numbers fixed by the seed and the inputs (see above)
+        :return: actions in env units (the action space's shape and dtype) and the new warm start
         """
-        if self.control == "policy" and not self._collecting:
+        if isinstance(observation, tuple) and len(observation) == 2 and isinstance(observation[1], dict):
+            raise ValueError(
+                "predict() got a tuple (observation, info): the return value of a gymnasium env's reset(). Pass the "
+                "observation alone: obs, info = env.reset(); model.predict(obs). (A VecEnv's reset() returns the "
+                "observations only.)"
+            )
+        if self.control == "policy":
             return self.policy.predict(observation, state, episode_start, deterministic)
+        obs, vectorized = self._obs_tensor(observation)
+        generator = self._deterministic_generator(observation, state) if deterministic else None
+        step = self.mpc.step(obs, state, episode_start, generator)  # type: ignore[arg-type]
+        actions = self._env_actions(step.actions)
+        return (actions if vectorized else actions[0]), step.state  # type: ignore[return-value]
+
+    def _obs_tensor(self, observation: np.ndarray | dict[str, np.ndarray]) -> tuple[th.Tensor, bool]:
+        """:return: the observation(s) as a float32 ``[n_envs, o]`` tensor on the device, and whether a batch was given"""
         obs_tensor, vectorized = self.policy.obs_to_tensor(observation)
         assert isinstance(obs_tensor, th.Tensor)
-        obs = obs_tensor.float()
-        step = self.mpc.step(obs, state, episode_start)  # type: ignore[arg-type]
-        if self._collecting and self.distiller is not None:
-            self.distiller.record(obs, step.plan)
-        return (step.actions if vectorized else step.actions.squeeze(0)), step.state  # type: ignore[return-value]
+        return obs_tensor.float(), vectorized
+
+    def _env_actions(self, actions: np.ndarray) -> np.ndarray:
+        """Planned actions ``[n_envs, A]`` in the action space's shape and dtype."""
+        assert isinstance(self.action_space, spaces.Box)
+        return actions.reshape((-1, *self.action_space.shape)).astype(self.action_space.dtype, copy=False)
+
+    def _deterministic_generator(self, observation: Any, state: Any) -> th.Generator:
+        """A generator seeded by the agent's seed, the observations and the warm start: ``deterministic=True``."""
+        digest = hashlib.blake2b(np.int64(self.seed or 0).tobytes(), digest_size=8)
+        digest.update(np.ascontiguousarray(observation, dtype=np.float32).tobytes())  # host data: no device round trip
+        if state is not None:
+            digest.update(np.ascontiguousarray(state, dtype=np.float32).tobytes())
+        generator = th.Generator(device=self.device)
+        generator.manual_seed(int.from_bytes(digest.digest(), "little") & (2**63 - 1))
+        return generator
 
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
     ) -> tuple[np.ndarray, np.ndarray]:
-        # The original: uniform random actions until the model has been trained once.
+        """
+        The training rollout's actions, whatever ``control`` says: uniform random actions until the model has been
+        fitted once (the original's start), then MPC from the agent's own warm start (reset per env at episode ends)
+        with the planner's generator; the plans are recorded for distillation.
+
+        :return: the actions in env units and as the replay buffer stores them (scaled to [-1, 1])
+        """
         if not self._model_fitted:
             learning_starts = max(learning_starts, self.num_timesteps + 1)
-        self._collecting = True  # training always plans (MPC), whatever `control` says
-        try:
-            return super()._sample_action(learning_starts, action_noise, n_envs)
-        finally:
-            self._collecting = False
+        assert isinstance(self.action_space, spaces.Box)
+        if self.num_timesteps < learning_starts:
+            unscaled = np.array([self.action_space.sample() for _ in range(n_envs)])
+        else:
+            assert isinstance(self._last_obs, np.ndarray)
+            obs, _ = self._obs_tensor(self._last_obs)
+            step = self.mpc.collect(obs)
+            if self.distiller is not None:
+                self.distiller.record(obs, step.plan)
+            unscaled = self._env_actions(step.actions)
+        scaled = self.policy.scale_action(unscaled)
+        if action_noise is not None:
+            scaled = np.clip(scaled + action_noise(), -1, 1)
+        return self.policy.unscale_action(scaled), scaled
 
     def _store_transition(
         self,
@@ -476,7 +539,7 @@ class POPLIN(OffPolicyAlgorithm):
     def load(  # type: ignore[override]
         cls: type[SelfPOPLIN],
         path: str | pathlib.Path | io.BufferedIOBase,
-        env: GymEnv | None = None,
+        env: GymEnv | str | None = None,
         device: th.device | str = "auto",
         custom_objects: dict[str, Any] | None = None,
         print_system_info: bool = False,
@@ -488,11 +551,13 @@ class POPLIN(OffPolicyAlgorithm):
         Load a saved agent (an env is optional: planning needs none), also one saved by sb3_poplin 0.1.0 or 0.2.0
         (the settings added since take the behaviour of its release, and its model runs without the task's PETS
         hooks, as it was trained). ``sb3_poplin_version`` names the release that saved the zip. Same arguments as
-        SB3's ``load``, plus:
+        SB3's ``load`` (``env`` may also be an env id, made with the task's env kwargs as the constructor does), plus:
 
         :param control: ``"mpc"`` or ``"policy"`` to override the saved control mode
         """
         kwargs = {**saving.check_saved_agent(path), **kwargs}  # a zip of an earlier release continues as it was
+        if isinstance(env, str):  # an env id, as the constructor takes
+            env = gym.make(env, **task_env_kwargs(env))
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
         if control is not None:
             model.control = control
@@ -505,44 +570,76 @@ class POPLIN(OffPolicyAlgorithm):
         include: Iterable[str] | None = None,
     ) -> None:
         """
-        SB3's ``save``; the zip's ``data`` also records the running release (``sb3_poplin_version``), also when this
-        agent was loaded from a zip of another release (its ``sb3_poplin_version`` stays that release's).
+        SB3's ``save``: the zip's ``data`` (every setting under its own name, and ``sb3_poplin_version``: the running
+        release, also when this agent was loaded from a zip of another release), the networks' and optimizers'
+        ``.pth`` files (:meth:`get_parameters`), and beside them the planner's state (``mpc.pth``: random generator
+        and warm start) and, for POPLIN-A/P, the distiller's (``distiller.pth``), so that a loaded agent continues
+        training exactly where this one is.
 
         :param path: path to the file where the agent should be saved
         :param exclude: names of attributes to exclude in addition to the default ones
         :param include: names of attributes that might be excluded but should be included anyway
         """
-        loaded_from = self.sb3_poplin_version
-        self.sb3_poplin_version = saving.current_release()
-        flat = self.settings.as_dict()
-        # the zip's data holds every setting under its own name (readable, and as every release saved them)
-        self.__dict__.update(flat)
-        try:
-            super().save(path, exclude, include)
-        finally:
-            self.sb3_poplin_version = loaded_from
-            for key in flat:
-                del self.__dict__[key]
+        dropped = set(exclude or ()) | set(self._excluded_save_params())
+        dropped -= set(include or ())
+        state_dicts, torch_variables = self._get_torch_save_params()
+        dropped |= {name.split(".")[0] for name in (*state_dicts, *torch_variables)}
+        data = {key: value for key, value in self.__dict__.items() if key not in dropped}
+        data.update(self.settings.as_dict(), sb3_poplin_version=saving.current_release())
+        params = {**self.get_parameters(), **self.planner_state_dict()}
+        variables = {name: recursive_getattr(self, name) for name in torch_variables}
+        save_to_zip_file(path, data=data, params=params, pytorch_variables=variables)
+
+    def planner_state_dict(self) -> dict[str, dict[str, Any]]:
+        """
+        What the agent carries beside its parameters, saved with it: the MPC controller's state (the planner's random
+        generator, the training rollout's warm start) and the distiller's (the planned steps not yet distilled).
+
+        :return: attribute name -> state dict
+        """
+        state = {"mpc": self.mpc.state_dict()}
+        if self.distiller is not None:
+            state["distiller"] = self.distiller.state_dict()
+        return state
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "settings"]  # saved by name (see save)
+        # settings: saved by name (see save); mpc, distiller: their state is saved beside the parameters
+        return [*super()._excluded_save_params(), "settings", *PLANNER_STATE]
 
     def set_parameters(
         self, load_path_or_dict: str | TensorDict, exact_match: bool = True, device: th.device | str = "auto"
     ) -> None:
-        """SB3's ``set_parameters``; a 0.1.0 zip's planner state (restored into ``data`` by ``load``) is upgraded."""
+        """
+        SB3's ``set_parameters`` (what :meth:`get_parameters` returns: the networks and optimizers). A zip, or a dict
+        read from one, also holds the planner's and distiller's state (:meth:`planner_state_dict`): restored too (a
+        0.1.0 zip's planner state, restored into ``data`` by ``load``, is upgraded).
+        """
+        params: dict[str, Any]
+        if isinstance(load_path_or_dict, dict):
+            params = dict(load_path_or_dict)
+        else:
+            _, loaded, _ = load_from_zip_file(load_path_or_dict, device=device, load_data=False)
+            params = dict(loaded or {})
+        state: dict[str, Any] = {name: params.pop(name) for name in PLANNER_STATE if name in params}
         legacy = self.__dict__.pop("_saved_planner_state", None)
-        if legacy is not None and isinstance(load_path_or_dict, dict):
-            upgraded = saving.upgrade_legacy_state(legacy, with_distiller=self.distiller is not None)
-            load_path_or_dict = {**load_path_or_dict, **upgraded}  # type: ignore[dict-item]
-        super().set_parameters(load_path_or_dict, exact_match, device)
+        if legacy is not None:
+            state = {**saving.upgrade_legacy_state(legacy, with_distiller=self.distiller is not None), **state}
+        super().set_parameters(params, exact_match, device)  # type: ignore[arg-type]
+        if "distiller" in state and self.distiller is None:
+            raise ValueError(
+                "The given state has a distiller's state but this agent has no policy network to distill into: it "
+                f"comes from a POPLIN-A/P agent, this one is {self.variant!r}. Load it into an agent of its variant."
+            )
+        for name, value in state.items():
+            getattr(self, name).load_state_dict(value)
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        # the MPC and distillation state are saved as state dicts (mpc.pth, distiller.pth), restored by set_parameters
-        extra = ["mpc"] if self.distiller is None else ["mpc", "distiller"]
-        return ["policy", *self.policy.optimizer_names(), *extra], []
+        # the parameters: the networks and their optimizers (the planner's state is saved beside them, see save)
+        return ["policy", *self.policy.optimizer_names()], []
 
 
+# attributes whose state a zip holds beside the parameters (POPLIN.planner_state_dict)
+PLANNER_STATE = ("mpc", "distiller")
 # the constructor's defaults of the settings: what a setting missing from a loaded zip starts from
 DEFAULT_SETTINGS: dict[str, Any] = {
     key: parameter.default

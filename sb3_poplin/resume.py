@@ -49,7 +49,10 @@ CHECKPOINT_FILES = ("model.zip", "replay_buffer.npz", "state.pt")
 LOCK_FILE = "run.lock"
 # result files of a run folder restored to their checkpoint content (the Monitor's CSV, the evaluation files)
 RESULT_FILE_PATTERN = re.compile(r"(.*\.monitor\.csv|evaluations.*\.npz)$")
-# callback attributes that hold a run's progress (SB3's EvalCallback, ControlModesEvalCallback)
+# callback attributes that hold a run's progress, restored on resume: every callback's call and step counters, those of
+# SB3's EvalCallback, StopTrainingOnNoModelImprovement, StopTrainingOnMaxEpisodes and EveryNTimesteps, rl-zoo3's
+# RawStatisticsCallback and ControlModesEvalCallback (tests/test_reliability.py compares every counter of SB3's and
+# ControlModesEvalCallback with an uninterrupted run's); a callback of one's own keeps its progress under these names
 CALLBACK_ATTRIBUTES = (
     "n_calls",
     "num_timesteps",
@@ -60,6 +63,11 @@ CALLBACK_ATTRIBUTES = (
     "_is_success_buffer",
     "best_mean_reward",
     "last_mean_reward",
+    "last_best_mean_reward",
+    "no_improvement_evals",
+    "n_episodes",
+    "last_time_trigger",
+    "_timesteps_counter",
     "timesteps",
     "results",
     "lengths",

@@ -12,6 +12,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 
@@ -212,8 +213,38 @@ def configuration(name: str) -> dict[str, Any]:
 def variant(name: str) -> Variant:
     """The :class:`Variant` of a ``policy`` name, or a clear error."""
     if name not in VARIANTS:
-        raise ValueError(f"Unknown POPLIN variant {name!r}; accepted values: {list(VARIANTS)}")
+        raise ValueError(
+            f"Unknown POPLIN variant {name!r}; accepted values: {list(VARIANTS)} or a named configuration "
+            f"{[key for key in NAMED_CONFIGURATIONS if key not in VARIANTS]}"
+        )
     return VARIANTS[name]
+
+
+def apply_configuration(policy: str, given: Mapping[str, Any], defaults: Mapping[str, Any]) -> tuple[str, dict[str, Any]]:
+    """
+    A ``policy`` that names one of :data:`NAMED_CONFIGURATIONS` (``"poplin-p/sep/bc"``) becomes its variant, with the
+    configuration's options over the settings left at their defaults.
+
+    :param policy: a variant or a named configuration
+    :param given: the settings as given to ``POPLIN`` (defaults included)
+    :param defaults: the constructor's defaults of the settings
+    :return: the variant and the settings
+    :raises ValueError: a setting given explicitly contradicts the named configuration
+    """
+    if policy in VARIANTS or policy not in NAMED_CONFIGURATIONS:
+        return policy, dict(given)
+    config = configuration(policy)
+    settings = dict(given)
+    for key, value in config.items():
+        if key == "policy":
+            continue
+        if settings.get(key) not in (value, defaults.get(key)):
+            raise ValueError(
+                f"policy={policy!r} sets {key}={value!r}, but {key}={settings[key]!r} was given: drop one of them "
+                f"(e.g. policy={config['policy']!r} with {key}={settings[key]!r})."
+            )
+        settings[key] = value
+    return str(config["policy"]), settings
 
 
 def resolve_settings(name: str, settings: Mapping[str, Any]) -> Settings:
@@ -377,14 +408,14 @@ def build_planner(
         )
     return MPCPlanner(
         model=dynamics,
-        search_space=spec.search_space(settings, int(action_space.shape[0]), policy),
+        search_space=spec.search_space(settings, int(np.prod(action_space.shape)), policy),
         optimizer=optimizer,
         reward_fn=reward_fn,
         termination_fn=termination_fn,
         propagation=settings.propagation,
         num_particles=settings.num_particles,
-        action_low=th.as_tensor(action_space.low, dtype=th.float32, device=device),
-        action_high=th.as_tensor(action_space.high, dtype=th.float32, device=device),
+        action_low=th.as_tensor(action_space.low, dtype=th.float32, device=device).reshape(-1),
+        action_high=th.as_tensor(action_space.high, dtype=th.float32, device=device).reshape(-1),
         dtype=settings.planning_dtype,
         max_batch_rows=settings.max_batch_rows,
     )

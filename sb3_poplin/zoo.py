@@ -14,7 +14,12 @@ argument parser is built. This module adds ``poplin`` to that table (and an optu
 
 * ``--conf-file`` defaults to the packaged ``sb3_poplin/hyperparams/<algo>.yml`` for ``poplin``, ``sac``,
   ``td3``, ``ppo``, ``crossq`` and ``tqc`` when it has an entry for the env (these files have the
-  MuJoCo ``-v5`` keys that rl-zoo3 lacks); otherwise rl-zoo3's own file is used.
+  MuJoCo ``-v5`` keys that rl-zoo3 lacks); otherwise rl-zoo3's own file is used. Every spelling of rl-zoo3's option
+  is honoured (``-conf``, ``--conf-file``, ``-c``, ...), and a packaged file can be named from any folder by its name
+  (``--conf-file poplin_cpu.yml``, or ``hyperparams/poplin_cpu.yml``; a local file of that name wins).
+* ``-params`` takes the values of POPLIN's string settings bare (``policy:poplin-a``) and refuses a value that is not
+  Python with the fix. With several envs (``n_envs``), the packaged files' episodic ``train_freq`` becomes the steps of
+  one episode of each env, as POPLIN's own default.
 * POPLIN envs get the env kwargs their task's reward needs (``sb3_poplin.tasks``) when the config
   does not set them; the evaluation env gets the config's env kwargs too (rl-zoo3 2.9 gives them only
   with ``--env-kwargs``), and they are recorded in ``args.yml`` so ``enjoy`` and ``record_video``
@@ -35,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import inspect
 import io
 import os
 import pathlib
@@ -46,11 +52,13 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any, ClassVar, TypeVar
 
+import gymnasium as gym
 import optuna
 import rl_zoo3.train
 from rl_zoo3 import ALGOS
 from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
+from rl_zoo3.utils import StoreDict
 from stable_baselines3.common.type_aliases import GymEnv
 
 from sb3_poplin import resume
@@ -84,6 +92,41 @@ def default_config(algo: str, env_id: str, budget: str = "paper") -> str | None:
     if algo == ALGO or env_id in load_config(path):
         return str(path)
     return None
+
+
+def resolve_conf_file(conf_file: str) -> str:
+    """
+    The hyperparameter file a ``--conf-file`` names. An existing file (relative to the working directory) is used as it
+    is; otherwise a packaged file's name, bare or as ``hyperparams/NAME`` (``poplin_cpu.yml``,
+    ``hyperparams/sac.yml``), is that packaged file, so the commands of the documentation work outside the repository.
+
+    :param conf_file: the ``--conf-file`` value: a ``.yml`` / ``.yaml`` / ``.py`` file or a Python package name
+    :return: the path to give rl-zoo3 (a package name unchanged: rl-zoo3 imports it)
+    :raises FileNotFoundError: a file that neither exists nor is a packaged file, with the packaged files' names
+    """
+    if not conf_file.endswith((".yml", ".yaml", ".py")) or os.path.exists(conf_file):
+        return conf_file
+    parts = pathlib.PurePath(conf_file).parts
+    if len(parts) == 1 or (len(parts) == 2 and parts[0] == "hyperparams"):
+        packaged = HYPERPARAMS_DIR / parts[-1]
+        if packaged.is_file():
+            return str(packaged)
+    names = sorted(path.name for path in HYPERPARAMS_DIR.glob("*.yml"))
+    raise FileNotFoundError(
+        f"--conf-file {conf_file}: no such file in {os.getcwd()}, and no packaged file of that name. Give the path of "
+        f"an rl-zoo3 hyperparameter file, or one of the packaged files by name (also as hyperparams/NAME): "
+        f"{', '.join(names)} (in {HYPERPARAMS_DIR})."
+    )
+
+
+def _episode_length(env_id: str, env_kwargs: dict[str, Any] | None) -> int:
+    """
+    :param env_id: gymnasium id
+    :param env_kwargs: the kwargs the env will be made with (``max_episode_steps`` overrides the registered length)
+    :return: the env's episode length, 1000 when it has no time limit (as :class:`POPLIN` counts it with several envs)
+    """
+    length = (env_kwargs or {}).get("max_episode_steps") or gym.spec(env_id).max_episode_steps
+    return int(length) if length else 1000
 
 
 # ---------------------------------------------------------------------------------------- optuna sampler
@@ -202,7 +245,19 @@ class PoplinExperimentManager(ExperimentManager):
     poplin_variant: str | None = None
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
+        """
+        rl-zoo3's ``ExperimentManager`` (same arguments), with the hyperparameter file chosen as ``train`` documents it:
+        ``config`` ``None`` is the packaged file when it has the env (:func:`default_config`; else rl-zoo3's own), and a
+        packaged file may be named without its folder (:func:`resolve_conf_file`). The file used is recorded as
+        ``conf_file`` in ``args.yml``.
+        """
+        bound = inspect.signature(ExperimentManager.__init__).bind(self, *args, **kwargs)
+        given = bound.arguments.get("config")
+        config = default_config(bound.arguments["algo"], bound.arguments["env_id"]) if given is None else given
+        bound.arguments["config"] = None if config is None else resolve_conf_file(config)
+        super().__init__(*bound.args[1:], **bound.kwargs)
+        if bound.arguments["config"] is not None:
+            self.args.conf_file = bound.arguments["config"]
         if self.policy_eval_freq is not None:
             self.args.policy_eval_freq = self.policy_eval_freq  # in args.yml: the run's settings identify it
         self.checkpoints_asked = self.checkpoints or self.resume_dir is not None
@@ -230,6 +285,7 @@ class PoplinExperimentManager(ExperimentManager):
             if env_kwargs:
                 hyperparams["env_kwargs"] = env_kwargs
                 saved_hyperparams["env_kwargs"] = env_kwargs
+            self._train_freq_for_several_envs(hyperparams, saved_hyperparams)
         if hyperparams.get("env_kwargs"):
             # rl-zoo3 2.9 gives the config's env kwargs to the evaluation env only with --env-kwargs,
             # and enjoy / record_video read them from args.yml
@@ -238,6 +294,37 @@ class PoplinExperimentManager(ExperimentManager):
             if getattr(self.args, "env_kwargs", None) is None:
                 self.args.env_kwargs = dict(hyperparams["env_kwargs"])
         return hyperparams, saved_hyperparams
+
+    def _train_freq_for_several_envs(self, hyperparams: dict[str, Any], saved_hyperparams: dict[str, Any]) -> None:
+        """
+        With several envs (``n_envs``), an episodic ``train_freq`` from the file (the packaged files' ``[1, episode]``)
+        becomes the steps of as many episodes of each env, as POPLIN's own default does (SB3 counts episodes with one
+        env only); the change is printed.
+
+        :param hyperparams: the hyperparameters, changed in place
+        :param saved_hyperparams: the ones saved in ``config.yml``, changed in place
+        :raises ValueError: an episodic ``train_freq`` given with ``-params``, with the steps to give instead
+        """
+        n_envs = int(hyperparams.get("n_envs", 1))
+        train_freq = hyperparams.get("train_freq")
+        episodic = isinstance(train_freq, (list, tuple)) and len(train_freq) == 2 and str(train_freq[1]) == "episode"
+        if n_envs <= 1 or not episodic:
+            return
+        assert isinstance(train_freq, (list, tuple))
+        episodes = int(train_freq[0])
+        steps = [episodes * _episode_length(self.env_name.gym_id, hyperparams.get("env_kwargs")), "step"]
+        what = "one episode" if episodes == 1 else f"{episodes} episodes"
+        if "train_freq" in (self.custom_hyperparams or {}):
+            raise ValueError(
+                f"train_freq {list(train_freq)} with n_envs {n_envs}: SB3 counts episodes with one env only. Give the "
+                f"steps of {what} of each env instead, -params train_freq:\"({steps[0]}, 'step')\", or train with one env."
+            )
+        print(
+            f"train_freq {list(train_freq)} with n_envs {n_envs}: SB3 counts episodes with one env only, so the model is "
+            f"refit after the steps of {what} of each env instead: train_freq {steps} (as POPLIN's default does)"
+        )
+        hyperparams["train_freq"] = steps
+        saved_hyperparams["train_freq"] = steps
 
     def create_callbacks(self) -> None:
         """rl-zoo3's callbacks, plus a policy-control evaluation for POPLIN-A/P (not during ``-optimize``)."""
@@ -365,7 +452,8 @@ def read_hyperparameters(
 
     :param algo: rl-zoo3 algorithm name
     :param env_id: gymnasium id
-    :param conf_file: hyperparameter file; ``None``: as ``train`` picks it (:func:`default_config`)
+    :param conf_file: hyperparameter file, or a packaged file's name (:func:`resolve_conf_file`); ``None``: as
+        ``train`` picks it (:func:`default_config`)
     :param hyperparams: ``-params`` overrides
     :return: the hyperparameters, as saved in the run's ``config.yml``
     """
@@ -376,52 +464,75 @@ def read_hyperparameters(
         env_id,
         log_folder=os.devnull,
         hyperparams=hyperparams,
-        config=conf_file or default_config(algo, env_id),
+        config=conf_file,
     )
     _, saved = manager.read_hyperparameters()
     return dict(saved)
 
 
 # ---------------------------------------------------------------------------------------- command line
-def _option_value(args: Sequence[str], *names: str) -> str | None:
-    """
-    :param args: a command line
-    :param names: the option's spellings
-    :return: the value of the last ``NAME VALUE`` or ``NAME=VALUE`` option, or ``None``
-    """
-    value = None
-    for index, arg in enumerate(args):
-        for name in names:
-            if arg == name and index + 1 < len(args):
-                value = args[index + 1]
-            elif arg.startswith(f"{name}="):
-                value = arg.split("=", 1)[1]
-    return value
+#: POPLIN settings whose values are strings: ``-params`` also takes them bare (``policy:poplin-a``)
+STRING_SETTINGS = (
+    "policy",
+    "cem_sampling",
+    "optimizer",
+    "proposal",
+    "noise",
+    "distillation",
+    "distill_window",
+    "avg_update",
+    "distill_target",
+    "whitening",
+    "propagation",
+    "planning_dtype",
+    "control",
+    "device",
+)
+_BARE_WORD = re.compile(r"[A-Za-z_][\w.:/+-]*")
 
 
-def _has_conf_file(args: Sequence[str]) -> bool:
+class ZooStoreDict(StoreDict):
     """
-    :param args: a ``train`` command line
-    :return: whether it gives ``--conf-file`` (``-conf``, or a prefix of ``--conf-file``, as argparse accepts)
+    rl-zoo3's ``KEY:VALUE ...`` action (``-params``, ``--env-kwargs``, ``--eval-env-kwargs``), which evaluates every
+    value as Python, with two changes: with ``-params`` the values of POPLIN's string settings (:data:`STRING_SETTINGS`)
+    may be given bare (``policy:poplin-a`` for ``policy:"'poplin-a'"``; ``None``, ``True`` and ``False`` stay Python),
+    and a value that is not Python is refused with the setting and the fix instead of ``eval``'s ``NameError``.
     """
-    return any(arg == "-conf" or arg.startswith("-conf=") or arg.startswith("--conf") for arg in args)
 
-
-def train_args(args: Sequence[str]) -> list[str]:
-    """
-    The arguments handed to rl-zoo3's ``train``: ``args`` plus the default ``--conf-file``.
-
-    :param args: the ``train`` command line (without the command)
-    :return: the new argument list
-    """
-    args = list(args)
-    if not _has_conf_file(args):
-        algo = _option_value(args, "--algo") or "ppo"
-        env_id = _option_value(args, "--env") or "CartPole-v1"
-        conf = default_config(algo, env_id)
-        if conf is not None:
-            args += ["--conf-file", conf]
-    return args
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: str | Sequence[Any] | None,
+        option_string: str | None = None,
+    ) -> None:
+        """
+        :param parser: the parser
+        :param namespace: where the ``{key: value}`` dict is stored
+        :param values: the ``KEY:VALUE`` strings
+        :param option_string: the option as given
+        :raises argparse.ArgumentError: an item without ``:`` or a value that is not Python (the parser exits with it)
+        """
+        settings: dict[str, Any] = {}
+        for item in [values] if isinstance(values, str) else list(values or []):
+            key, colon, value = str(item).partition(":")
+            if not colon:
+                raise argparse.ArgumentError(self, f"{item!r}: expected KEY:VALUE, e.g. horizon:30")
+            bare = _BARE_WORD.fullmatch(value) is not None and value not in ("None", "True", "False")
+            if self.dest == "hyperparams" and key in STRING_SETTINGS and bare:
+                settings[key] = value
+                continue
+            parsed = argparse.Namespace()
+            try:
+                super().__call__(parser, parsed, [item], option_string)
+            except Exception as error:
+                raise argparse.ArgumentError(
+                    self,
+                    f"{item}: {value!r} is not a Python value ({type(error).__name__}: {error}). rl-zoo3 evaluates "
+                    f"every value as Python: quote a string, e.g. {key}:\"'{value}'\"",
+                ) from error
+            settings.update(getattr(parsed, self.dest))
+        setattr(namespace, self.dest, settings)
 
 
 @contextmanager
@@ -442,12 +553,12 @@ def _argv(prog: str, args: Sequence[str]) -> Iterator[None]:
 
 def _train(args: Sequence[str]) -> None:
     """
-    rl-zoo3 ``train`` with :class:`PoplinExperimentManager` and the default ``--conf-file``.
+    rl-zoo3 ``train`` with :class:`PoplinExperimentManager` (the default ``--conf-file``) and :class:`ZooStoreDict`.
 
     :param args: the ``train`` command line (plus ``--no-policy-eval``, ``--policy-eval-freq``, ``--checkpoints`` and
-        ``--resume``)
+        ``--resume``, spelled in full: an abbreviation such as ``--c`` is rl-zoo3's, here ``--conf-file``)
     """
-    parser = argparse.ArgumentParser(add_help=False)
+    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
     parser.add_argument("--no-policy-eval", action="store_true")
     parser.add_argument("--policy-eval-freq", type=int)
     parser.add_argument("--checkpoints", action="store_true")
@@ -461,9 +572,10 @@ def _train(args: Sequence[str]) -> None:
     PoplinExperimentManager.policy_eval_freq = own.policy_eval_freq
     PoplinExperimentManager.checkpoints = own.checkpoints
     PoplinExperimentManager.resume_dir = own.resume
-    # rl_zoo3.train() builds its ExperimentManager from this module attribute
+    # rl_zoo3.train() builds its ExperimentManager and its KEY:VALUE options' action from these module attributes
     setattr(rl_zoo3.train, "ExperimentManager", PoplinExperimentManager)  # noqa: B010
-    with _argv("sb3-poplin-zoo train", train_args(rest)):
+    setattr(rl_zoo3.train, "StoreDict", ZooStoreDict)  # noqa: B010
+    with _argv("sb3-poplin-zoo train", rest):
         rl_zoo3.train.train()
 
 
@@ -549,7 +661,8 @@ USAGE = f"""usage: sb3-poplin-zoo COMMAND [ARGS...]   (or: python -m sb3_poplin.
 
 rl-zoo3 with POPLIN registered as --algo {ALGO}. Commands:
   train         rl-zoo3 train; --conf-file defaults to sb3_poplin/hyperparams/<algo>.yml for
-                {", ".join(PACKAGED_ALGOS)} when it has the env; --no-policy-eval skips the
+                {", ".join(PACKAGED_ALGOS)} when it has the env (a packaged file can be named
+                by its name alone, e.g. --conf-file poplin_cpu.yml); --no-policy-eval skips the
                 policy-control evaluation (evaluations_policy.npz) of POPLIN-A/P runs,
                 --policy-eval-freq N makes it every N steps (default: --eval-freq);
                 --checkpoints saves a checkpoint after every episode, --resume RUN_DIR continues

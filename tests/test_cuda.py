@@ -31,7 +31,7 @@ pytestmark = [
     pytest.mark.cuda,
     pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU (run on a GPU machine: pytest -m cuda)"),
     # a zip saved on one kind of device carries a generator state the other kind cannot take (POPLIN warns)
-    pytest.mark.filterwarnings("ignore:The planner's random state was saved on another device"),
+    pytest.mark.filterwarnings("ignore:The planner's random state"),
 ]
 
 SMALL = dict(horizon=10, population_size=64, num_elites=8, cem_iterations=3, ensemble_size=3, dynamics_net_arch=(32, 32))

@@ -19,7 +19,7 @@ from conftest import load_benchmark, tiny
 from sb3_poplin import POPLIN
 from sb3_poplin.distillation import Distiller, average_perturbation, clip_straight_through, gan_distillation
 from sb3_poplin.dynamics import ProbabilisticEnsemble
-from sb3_poplin.planning import PlanResult, PolicyParameterNoise
+from sb3_poplin.planning import PlanResult, PolicyActionNoise, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, POPLINPolicy, PolicyNetwork
 from sb3_poplin.saving import SETTINGS_BEFORE_0_3
 from sb3_poplin.tasks.hooks import LocomotionHooks
@@ -78,6 +78,52 @@ def test_later_whitening_updates_keep_the_function_unless_plain():
         all_states = th.cat([states, more])
         assert th.allclose(policy.obs_mean, all_states.mean(dim=0), atol=1e-4)
         assert th.allclose(policy.obs_var, all_states.var(dim=0, unbiased=False), rtol=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("method", "space_kind"),
+    [("bc", "action noise"), ("bc", "parameter noise"), ("gan", "parameter noise"), ("avg", "parameter noise")],
+)
+def test_whitening_over_distillations_with_a_window_and_imagined_data_counts_each_real_state_once(method, space_kind):
+    """
+    Three distillations of 10 real steps each (2 envs x 5 steps), with a window of 6 steps and 3 imagined elites per
+    step: the whitening statistics are numpy's over the 30 real states recorded, neither the window (states distilled
+    again) nor the imagined copies of a state count (issue 48).
+    """
+    th.manual_seed(0)
+    obs_space, action_space = gym.spaces.Box(-np.inf, np.inf, (3,)), gym.spaces.Box(-1, 1, (2,))
+    networks = POPLINPolicy(
+        obs_space, action_space, ensemble_size=1, dynamics_net_arch=(4,), policy_net_arch=[8],
+        discriminator_net_arch=[8] if method == "gan" else None,
+    )  # fmt: skip
+    policy = networks.actor
+    assert policy is not None
+    if space_kind == "action noise":
+        space: PolicyActionNoise | PolicyParameterNoise = PolicyActionNoise(2, 2, 0.1, policy, "replan")
+    else:
+        space = PolicyParameterNoise(2, 2, 0.1, policy, "sep")
+    distiller = Distiller(
+        method, space, networks, imagined=True, window=6, avg_step_size=1.0, epochs=2, batch_size=8, noise_var=0.1,
+        avg_update="add",
+    )  # fmt: skip
+    gen = th.Generator().manual_seed(1)
+    scale, shift = th.tensor([1.0, 3.0, 0.5]), th.tensor([1.4, -2.0, 0.3])
+    seen: list[np.ndarray] = []
+    for _ in range(3):
+        for _ in range(5):
+            obs = th.randn(2, 3, generator=gen) * scale + shift
+            elites = th.randn(2, 3, space.dim, generator=gen) * 0.1
+            action, no_fallback = th.rand(2, 2, generator=gen) * 2 - 1, th.zeros(2, dtype=th.bool)
+            plan = PlanResult(action, th.zeros(2, 2), th.zeros(2), elites[:, 0], elites, no_fallback, elites.mean(dim=1))
+            distiller.record(obs, plan)
+            seen.append(obs.numpy())
+        distiller.distill(th.Generator().manual_seed(2))
+        states = np.concatenate(seen).astype(np.float64)
+        assert float(policy.obs_count) == len(states)
+        np.testing.assert_allclose(policy.obs_mean.numpy(), states.mean(axis=0), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(policy.obs_var.numpy(), states.var(axis=0), rtol=1e-5, atol=1e-6)
+    if method != "avg":
+        assert len(distiller.data["states"]) == 6 and distiller.data["imagined"].shape == (6, 3, 2)  # the window was used
 
 
 # ---------------------------------------------------------------- Avg

@@ -236,9 +236,9 @@ def test_shifted_elites_are_carried_per_env_reset_at_episode_starts_and_saved(tm
     assert given[1].isnan().all()
     first = populations[0]
     assert th.equal(first[0, -carried:], given[0]) and not first[1].isnan().any()
-    # the agent's own warm start (training), reset per env at an episode end, and saved with the agent
-    model.predict(obs)
-    model.predict(obs)
+    # the agent's own warm start (the training rollout's), reset per env at an episode end, and saved with the agent
+    model.mpc.collect(th.as_tensor(obs))
+    model.mpc.collect(th.as_tensor(obs))
     warm = model.mpc.warm_start.clone()
     assert not warm.isnan().any()
     model.save(tmp_path / "agent")
@@ -262,7 +262,7 @@ def test_a_zip_loaded_with_icem_plans_afresh(tmp_path):
     """The warm start of a CEM agent has no room for carried elites: loaded with optimizer="icem" it is dropped."""
     model = tiny("pets")
     obs = np.zeros((1, 3), dtype=np.float32)
-    model.predict(obs)
+    model.mpc.collect(th.as_tensor(obs))  # the training rollout's own warm start
     model.save(tmp_path / "agent")
     loaded = POPLIN.load(tmp_path / "agent", optimizer="icem")
     assert loaded.settings.optimizer == "icem" and loaded.mpc.warm_start is None

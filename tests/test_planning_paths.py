@@ -266,7 +266,7 @@ def test_episodes_ended_resets_the_own_warm_start_of_those_envs_only() -> None:
     controller.episodes_ended(np.array([False, True, False]))
     expected = th.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0], [7.0, 8.0, 9.0]])
     assert th.equal(controller.warm_start, expected)
-    # the next step of the three envs plans from that warm start and keeps the new one
+    # the training rollout's next step of the three envs plans from that warm start and keeps the new one
     seen = {}
     plan = controller.planner.plan
 
@@ -276,10 +276,18 @@ def test_episodes_ended_resets_the_own_warm_start_of_those_envs_only() -> None:
         return seen["plan"]
 
     controller.planner.plan = spy  # type: ignore[method-assign]
-    step = controller.step(th.tensor([[0.1], [0.2], [0.3]]))
+    step = controller.collect(th.tensor([[0.1], [0.2], [0.3]]))
     assert th.equal(seen["mean"], expected)
     assert th.equal(controller.warm_start, seen["plan"].next_state)
     np.testing.assert_array_equal(step.state, seen["plan"].next_state.numpy())
+    # a step from a given state (predict) plans from it, with a given generator, and leaves the own warm start alone
+    own = controller.warm_start.clone()
+    given = th.full((3, 3), 0.5)
+    generator = th.Generator().manual_seed(3)
+    controller.step(th.tensor([[0.1], [0.2], [0.3]]), given.numpy(), None, generator)
+    assert th.equal(seen["mean"], given) and th.equal(controller.warm_start, own)
+    controller.step(th.tensor([[0.1], [0.2], [0.3]]))  # no state: a fresh start
+    assert th.equal(seen["mean"], th.zeros(3, 3)) and th.equal(controller.warm_start, own)
 
 
 @pytest.mark.parametrize("variant", ["pets", "poplin-p"])

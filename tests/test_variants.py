@@ -467,12 +467,12 @@ def test_control_modes_callback_evaluates_each_mode_under_its_control(tmp_path):
 
     def recording(observation, state=None, episode_start=None, deterministic=False):
         action, new_state = predict(observation, state, episode_start, deterministic)
-        if not model._collecting:  # evaluate_policy's calls, not the training rollout's
-            calls.append((model.control, observation.copy(), action.copy()))
-            if model.control == "policy":  # the policy network's action, mapped to the torque bounds
-                with th.no_grad():
-                    direct = 2.0 * model.policy.actor.act(th.as_tensor(observation)).numpy()
-                np.testing.assert_allclose(action, direct, atol=1e-6)
+        # only evaluate_policy calls predict: the training rollout plans in _sample_action
+        calls.append((model.control, observation.copy(), action.copy()))
+        if model.control == "policy":  # the policy network's action, mapped to the torque bounds
+            with th.no_grad():
+                direct = 2.0 * model.policy.actor.act(th.as_tensor(observation)).numpy()
+            np.testing.assert_allclose(action, direct, atol=1e-6)
         return action, new_state
 
     model.predict = recording
@@ -502,8 +502,7 @@ def test_control_modes_callback_evaluates_each_mode_under_its_control(tmp_path):
 def test_recorded_distillation_targets_carry_no_graph():
     model = POPLIN("poplin-a", "Pendulum-v1", seed=0, **TINY)  # BC-AI: imagined targets computed while acting
     model.learn(400)
-    model._collecting = True
-    model.predict(np.array([1.0, 0.0, 0.0], dtype=np.float32))
-    model._collecting = False
+    model._last_obs = np.array([[1.0, 0.0, 0.0]], dtype=np.float32)
+    model._sample_action(learning_starts=0)  # a training rollout's step: planned and recorded
     for key, value in model.distiller.planned[-1].items():
         assert not value.requires_grad and value.grad_fn is None, key

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import inspect
 import os
+import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -167,12 +170,17 @@ def test_task_env_kwargs_are_added(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_default_conf_file() -> None:
+    def conf_file(algo: str, env_id: str, config: str | None = None) -> tuple[str, str | None]:
+        args = SimpleNamespace(env_kwargs=None, conf_file=config)
+        manager = zoo.PoplinExperimentManager(args, algo, env_id, log_folder=os.devnull, config=config)
+        return manager.config, args.conf_file  # what is read, and what args.yml records
+
     sac = str(presets.config_path("sac"))
-    assert zoo.train_args(["--algo", "sac", "--env", "HalfCheetah-v5"])[-2:] == ["--conf-file", sac]
-    assert zoo.train_args(["--algo=poplin", "--env=Foo-v0"])[-1] == str(presets.config_path("poplin"))
-    assert zoo.train_args(["--algo", "sac", "--env", "HalfCheetah-v4"]) == ["--algo", "sac", "--env", "HalfCheetah-v4"]
-    given = ["--algo", "poplin", "--env", "Pendulum-v1", "-conf", "mine.yml"]
-    assert zoo.train_args(given) == given
+    assert conf_file("sac", "HalfCheetah-v5") == (sac, sac)
+    assert conf_file("poplin", "MountainCarContinuous-v0") == (str(presets.config_path("poplin")),) * 2
+    zoo_own, recorded = conf_file("sac", "HalfCheetah-v4")  # no packaged entry: rl-zoo3's own file, None in args.yml
+    assert zoo_own.endswith(os.path.join("hyperparams", "sac.yml")) and zoo_own != sac and recorded is None
+    assert conf_file("poplin", "Pendulum-v1", __file__) == (__file__, __file__)
     with pytest.raises(ValueError, match="budget"):
         presets.config_path("poplin", "gpu")
 
@@ -260,3 +268,131 @@ def test_optimizer_and_its_options_come_from_the_yml(tmp_path: Path) -> None:
     # the same from the command line's -params (rl-zoo3 evaluates each value)
     overrides = zoo.read_hyperparameters("poplin", "Pendulum-v1", hyperparams={"optimizer": "icem"})
     assert overrides["optimizer"] == "icem"
+
+
+# ------------------------------------------------------------------------------------------------ the train command line
+class _SetUp(Exception):
+    """Raised by :func:`zoo_train` in place of rl-zoo3's set-up: the manager and the hyperparameters ``train`` would use."""
+
+
+@pytest.fixture
+def zoo_train(monkeypatch: pytest.MonkeyPatch) -> Callable[[list[str]], tuple[zoo.PoplinExperimentManager, dict]]:
+    """``sb3-poplin-zoo train ARGS`` run in this process up to its hyperparameters: nothing is created or trained."""
+
+    def setup_experiment(self: zoo.PoplinExperimentManager) -> None:
+        hyperparams, _ = self.read_hyperparameters()
+        raise _SetUp(self, hyperparams)
+
+    monkeypatch.setattr(zoo.PoplinExperimentManager, "setup_experiment", setup_experiment)
+
+    def train(args: list[str]) -> tuple[zoo.PoplinExperimentManager, dict]:
+        with pytest.raises(_SetUp) as set_up:
+            zoo.main(["train", "--seed", "0", "-f", os.devnull, *args])
+        return set_up.value.args
+
+    return train
+
+
+@pytest.mark.parametrize(
+    "spelling",
+    [["-c", "{}"], ["-conf", "{}"], ["--conf-file", "{}"], ["--conf-file={}"], ["-conf={}"], ["--conf", "{}"], ["--c", "{}"]],
+)
+def test_every_conf_file_spelling_is_honoured(
+    spelling: list[str], tmp_path: Path, zoo_train: Callable[[list[str]], tuple[zoo.PoplinExperimentManager, dict]]
+) -> None:
+    """rl-zoo3's -conf, --conf-file and what argparse takes for them (-c, --conf, ...): the file's entry, not poplin.yml."""
+    entry = dict(presets.load_config(presets.config_path("poplin", "cpu"))["Pendulum-v1"], horizon=7)
+    entry["env_kwargs"] = {"g": 9.0}
+    conf = tmp_path / "mine.yml"
+    conf.write_text(yaml.safe_dump({"Pendulum-v1": entry}))
+    args = [part.format(conf) for part in spelling]
+    manager, hyperparams = zoo_train(["--algo", "poplin", "--env", "Pendulum-v1", *args])
+    assert manager.config == str(conf) and manager.args.conf_file == str(conf)  # args.yml names the file used
+    assert hyperparams["horizon"] == 7 and hyperparams["env_kwargs"] == {"g": 9.0}
+    assert manager.eval_env_kwargs == {"g": 9.0}
+
+
+def test_packaged_conf_files_by_name(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    zoo_train: Callable[[list[str]], tuple[zoo.PoplinExperimentManager, dict]],
+) -> None:
+    """Outside the repository, poplin_cpu.yml and hyperparams/poplin_cpu.yml are the packaged file; a local file wins."""
+    monkeypatch.chdir(tmp_path)
+    packaged = str(presets.config_path("poplin", "cpu"))
+    horizon = presets.load_config(packaged)["Pendulum-v1"]["horizon"]
+    for name in ("poplin_cpu.yml", "hyperparams/poplin_cpu.yml"):
+        manager, hyperparams = zoo_train(["--algo", "poplin", "--env", "Pendulum-v1", "--conf-file", name])
+        assert manager.config == packaged and manager.args.conf_file == packaged and hyperparams["horizon"] == horizon
+        assert zoo.read_hyperparameters("poplin", "Pendulum-v1", conf_file=name)["horizon"] == horizon
+    manager, _ = zoo_train(["--algo", "sac", "--env", "Pendulum-v1", "-c", "sac.yml"])
+    assert manager.config == str(presets.config_path("sac"))
+    # a file of that name here wins
+    (tmp_path / "hyperparams").mkdir()
+    entry = dict(presets.load_config(packaged)["Pendulum-v1"], horizon=7)
+    (tmp_path / "hyperparams" / "poplin_cpu.yml").write_text(yaml.safe_dump({"Pendulum-v1": entry}))
+    manager, hyperparams = zoo_train(["--algo", "poplin", "--env", "Pendulum-v1", "--conf-file", "hyperparams/poplin_cpu.yml"])
+    assert manager.config == "hyperparams/poplin_cpu.yml" and hyperparams["horizon"] == 7
+    # neither here nor packaged: the problem and the fix
+    with pytest.raises(FileNotFoundError, match=r"nothere\.yml.*packaged files.*poplin_cpu\.yml"):
+        zoo_train(["--algo", "poplin", "--env", "Pendulum-v1", "--conf-file", "nothere.yml"])
+
+
+def test_n_envs_with_the_packaged_episodic_train_freq(tmp_path: Path) -> None:
+    """-params n_envs:2 with a packaged file (train_freq: [1, episode]): refit every episode length's worth of steps."""
+    zoo_train = [sys.executable, "-m", "sb3_poplin.zoo", "train", "--algo", "poplin", "--env", "Pendulum-v1"]
+    args = ["-n", "800", "--num-threads", "1", "--seed", "0", "-f", "logs", "--eval-freq", "-1"]
+    process = run([*zoo_train, *args, "-params", "n_envs:2", *TINY_POPLIN], tmp_path)
+    assert "train_freq [1, 'episode'] with n_envs 2" in process.stdout and "[200, 'step']" in process.stdout
+    run_dir = tmp_path / "logs" / "poplin" / "Pendulum-v1_1"
+    assert (run_dir / "Pendulum-v1.zip").is_file()
+    assert dict(load_yaml(run_dir / "Pendulum-v1" / "config.yml"))["train_freq"] == [200, "step"]
+
+
+def test_n_envs_train_freq_is_adapted_or_refused() -> None:
+    """The file's episodic train_freq becomes steps with several envs; an episodic one asked for on -params is refused."""
+    hyperparams = zoo.read_hyperparameters("poplin", "Pendulum-v1", hyperparams={"n_envs": 2})
+    assert hyperparams["train_freq"] == [200, "step"]
+    hyperparams = zoo.read_hyperparameters("poplin", "Pendulum-v1", hyperparams={"n_envs": 2, "train_freq": 50})
+    assert hyperparams["train_freq"] == 50
+    assert zoo.read_hyperparameters("poplin", "Pendulum-v1")["train_freq"] == [1, "episode"]
+    with pytest.raises(ValueError, match=r"train_freq.*one env.*train_freq:\"\(200, 'step'\)\""):
+        zoo.read_hyperparameters("poplin", "Pendulum-v1", hyperparams={"n_envs": 2, "train_freq": (1, "episode")})
+
+
+def test_params_take_bare_strings_for_string_settings(
+    zoo_train: Callable[[list[str]], tuple[zoo.PoplinExperimentManager, dict]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """-params policy:poplin-a needs no nested quotes; Python values still parse as rl-zoo3 evaluates them."""
+    params = ["policy:poplin-a", "proposal:replan", "propagation:ts1", "optimizer:icem", "device:cpu"]
+    params += ["horizon:30", "dynamics_net_arch:[64,64]", "distillation:None", "noise:'sep'", "cem_alpha:0.2"]
+    _, hyperparams = zoo_train(["--algo", "poplin", "--env", "Pendulum-v1", "-params", *params])
+    assert hyperparams["policy"] == "poplin-a" and hyperparams["proposal"] == "replan" and hyperparams["device"] == "cpu"
+    assert hyperparams["propagation"] == "ts1" and hyperparams["optimizer"] == "icem" and hyperparams["noise"] == "sep"
+    assert hyperparams["horizon"] == 30 and hyperparams["dynamics_net_arch"] == [64, 64] and hyperparams["cem_alpha"] == 0.2
+    assert hyperparams["distillation"] is None
+    assert set(zoo.STRING_SETTINGS) <= set(inspect.signature(POPLIN.__init__).parameters)
+    # a word where a Python value is needed: the setting, the value and the fix, not a NameError
+    with pytest.raises(SystemExit):
+        zoo.main(["train", "--algo", "poplin", "--env", "Pendulum-v1", "-params", "horizon:thirty"])
+    error = capsys.readouterr().err
+    assert "horizon:thirty" in error and "not a Python value" in error and "horizon:\"'thirty'\"" in error
+
+
+def test_makefile_torch_index(tmp_path: Path) -> None:
+    """make install TORCH_INDEX=URL installs torch from that index (only torch); the default install is unchanged."""
+    if shutil.which("make") is None:
+        pytest.skip("make is not installed")
+    root = Path(__file__).resolve().parents[1]
+
+    def install_commands(*variables: str) -> list[str]:
+        dry_run = ["make", "-n", "-B", "install", f"VENV={tmp_path / 'venv'}", *variables]
+        process = subprocess.run(dry_run, cwd=root, capture_output=True, text=True, check=True)
+        return [line for line in process.stdout.splitlines() if "pip install" in line and "--upgrade pip" not in line]
+
+    default = install_commands()
+    assert len(default) == 2 and "torch==2.13.0" in default[0] and all("--index-url" not in line for line in default)
+    cpu = "https://download.pytorch.org/whl/cpu"
+    torch_line, package_line = install_commands(f"TORCH_INDEX={cpu}")
+    assert f"--index-url {cpu}" in torch_line and "torch==2.13.0" in torch_line
+    assert "--index-url" not in package_line and package_line == default[1]

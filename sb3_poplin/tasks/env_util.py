@@ -42,7 +42,7 @@ def max_episode_steps(env: GymEnv | None) -> int | None:
 def check_spaces(env: GymEnv | None) -> None:
     """
     Reject, with the reason and the fix, the envs the planner cannot handle: it needs a Box action space with finite
-    bounds and a flat Box observation space.
+    bounds (of any shape: it plans the flattened actions) and a flat Box observation space.
 
     :raises ValueError: naming the problem and the fix
     """
@@ -54,11 +54,6 @@ def check_spaces(env: GymEnv | None) -> None:
             f"POPLIN plans continuous actions and needs a Box action space, got {action_space}. "
             "Use a continuous-action environment (e.g. Pendulum-v1), or a model-free SB3 algorithm "
             "such as DQN or PPO for discrete actions."
-        )
-    if len(action_space.shape) != 1:
-        raise ValueError(
-            f"POPLIN needs a 1-D Box action space, got shape {action_space.shape}. Flatten the actions with a "
-            "gymnasium.ActionWrapper of your own (and write the reward for the flat layout)."
         )
     if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
         raise ValueError(

@@ -1,0 +1,102 @@
+#!/usr/bin/env bash
+# Issue 45: the paper's Cheetah to 50k steps at horizon 30 (population 200, 20 elites, 5 CEM iterations, the CPU
+# preset's model), runs that survive interruptions. Each column runs from a clone pinned at PIN, in its own virtualenv,
+# with its log folder outside the repository's work tree (ROOT, default /work/h45), so that code changes never reach
+# a half-finished run and a re-created work tree loses no checkpoint.
+#
+#   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh start COLUMN   # (re)start a column in the background; resumes
+#   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh sync            # copy the runs' small files into this folder
+#   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh report COLUMN   # the column's report from what exists
+#   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh status
+#
+# COLUMN: headline (PETS and POPLIN-P Sep/Avg, seeds 0-3; its report has the baselines too), baselines (SAC and TD3
+# to 3 x 50k, in the headline's log folder), bc (POPLIN-P Sep with
+# BC and init_var 0.03, seeds 0-1), replan (POPLIN-A Replan, seeds 0-1). On a new machine, `start` first restores the
+# complete runs committed here (their small files), so only unfinished runs train again.
+set -euo pipefail
+
+PIN=5d8f6a0  # the runs' code: never moved while a column is unfinished
+ROOT=${H45_ROOT:-/work/h45}
+HERE=$(cd "$(dirname "$0")" && pwd)
+REPO=$(git -C "$HERE" rev-parse --show-toplevel)
+TREE=$ROOT/tree
+VENV=$ROOT/venv
+PY=$VENV/bin/python
+TASK=sb3_poplin/PETSCheetah-v0
+BUDGET=(horizon:30 cem_iterations:5 buffer_size:50000)
+
+column_args() {  # COLUMN [report]: ARGS, and FOLDER (the log folder's name: the baselines share the headline's)
+    local algos seeds extra=()
+    FOLDER=$1
+    case "$1" in
+        headline) algos=(pets poplin-p); seeds=(0 1 2 3)
+            if [ "${2:-}" = report ]; then algos+=(sac td3); extra=(--steps-scale sac:3 td3:3); fi ;;
+        baselines) algos=(sac td3); seeds=(0 1 2 3); extra=(--steps-scale sac:3 td3:3); FOLDER=headline ;;
+        bc) algos=(poplin-p); seeds=(0 1); extra=(--params poplin-p:distillation:bc poplin-p:init_var:0.03) ;;
+        replan) algos=(poplin-a); seeds=(0 1); extra=(--params poplin-a:proposal:replan) ;;
+        *) echo "unknown column $1: headline, baselines, bc or replan" >&2; exit 2 ;;
+    esac
+    local params=()
+    for algo in "${algos[@]}"; do
+        case "$algo" in sac|td3) ;; *) for setting in "${BUDGET[@]}"; do params+=("$algo:$setting"); done ;; esac
+    done
+    # --params collects every ALGO:KEY:VALUE after it: the column's own come last
+    local given=()
+    if [ "${#extra[@]}" -gt 0 ] && [ "${extra[0]}" = --params ]; then given=("${extra[@]:1}"); extra=(); fi
+    ARGS=(--budget cpu --envs "$TASK" --algos "${algos[@]}" --seeds "${seeds[@]}" -n 50000 --eval-freq 25000
+          --eval-episodes 2 --policy-eval-freq 5000 --log-folder "$ROOT/logs/$FOLDER" --output "$ROOT/report/$1"
+          "${extra[@]}")
+    if [ "${#params[@]}" -gt 0 ] || [ "${#given[@]}" -gt 0 ]; then ARGS+=(--params "${params[@]}" "${given[@]}"); fi
+}
+
+setup() {
+    mkdir -p "$ROOT"
+    [ -d "$TREE/.git" ] || git clone -q "$REPO" "$TREE"
+    git -C "$TREE" fetch -q "$REPO" 2>/dev/null || true
+    git -C "$TREE" checkout -q "$PIN"
+    if [ ! -x "$PY" ]; then
+        python3 -m venv "$VENV"
+        "$PY" -m pip install -q "torch==2.13.0"
+        "$PY" -m pip install -q -e "$TREE[extra]"
+    fi
+}
+
+restore() {  # complete runs committed here, on a machine that lacks them
+    local column=$1 folder
+    [ -d "$HERE/$column/zoo" ] || return 0
+    for marker in "$HERE/$column"/zoo/*/*/compare_complete.json; do
+        [ -e "$marker" ] || continue
+        folder=$(dirname "$marker")
+        local target=$ROOT/logs/$column/${folder#"$HERE/$column/zoo/"}
+        [ -d "$target" ] || { mkdir -p "$(dirname "$target")"; cp -r "$folder" "$target"; }
+    done
+}
+
+case "${1:-}" in
+    start)
+        column_args "$2"; setup; restore "$FOLDER"
+        mkdir -p "$ROOT/logs/$FOLDER"
+        (cd "$TREE" && nohup "$PY" benchmarks/compare.py "${ARGS[@]}" --jobs "${JOBS:-2}" \
+            >> "$ROOT/logs/$2.out" 2>&1 &)
+        echo "started $2: $ROOT/logs/$2.out" ;;
+    sync)
+        for logs in "$ROOT"/logs/*/; do  # logs/<folder>/ -> <folder>/zoo/
+            column=$(basename "$logs")
+            (cd "$logs" && find . -path '*/checkpoints' -prune -o -path './compare_logs' -prune -o -type f \
+                \( -name '*.csv' -o -name '*.npz' -o -name '*.yml' -o -name '*.txt' -o -name '*.json' \) -print) |
+            while read -r file; do
+                mkdir -p "$HERE/$column/zoo/$(dirname "$file")"
+                cp -p "$logs/$file" "$HERE/$column/zoo/$file"
+            done
+        done ;;
+    report)
+        column_args "$2" report
+        (cd "$REPO" && "$REPO/.venv/bin/python" benchmarks/compare.py "${ARGS[@]}" --report-only \
+            --log-folder "$HERE/$FOLDER/zoo" --output "$HERE/$2") || true ;;
+    status)
+        pgrep -af "sb3_poplin.zoo train" | sed 's/ -params.*//' || echo "no run is training"
+        for log in "$ROOT"/logs/*/compare_logs/*.log; do
+            [ -e "$log" ] && printf '%s: %s\n' "$(basename "$log" .log)" "$(grep -c '' "$log") lines"
+        done ;;
+    *) sed -n 2,15p "$0"; exit 2 ;;
+esac
