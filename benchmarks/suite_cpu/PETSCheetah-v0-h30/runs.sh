@@ -1,22 +1,24 @@
 #!/usr/bin/env bash
 # Issue 45: the paper's Cheetah to 50k steps at horizon 30 (population 200, 20 elites, 5 CEM iterations, the CPU
 # preset's model), runs that survive interruptions. Each column runs from a clone pinned at PIN, in its own virtualenv,
-# with its log folder outside the repository's work tree (ROOT, default /work/h45), so that code changes never reach
+# with its log folder outside the repository's work tree (ROOT, default /root/h45), so that code changes never reach
 # a half-finished run and a re-created work tree loses no checkpoint.
 #
 #   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh start COLUMN   # (re)start a column in the background; resumes
-#   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh sync            # copy the runs' small files into this folder
+#   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh sync            # the runs' small files and latest checkpoints here
+#   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh restore COLUMN  # what start restores first (ROOT lacks a run)
 #   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh report COLUMN   # the column's report from what exists
 #   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh status
 #
 # COLUMN: headline (PETS and POPLIN-P Sep/Avg, seeds 0-3; its report has the baselines too), baselines (SAC and TD3
 # to 3 x 50k, in the headline's log folder), bc (POPLIN-P Sep with
 # BC and init_var 0.03, seeds 0-1), replan (POPLIN-A Replan, seeds 0-1). On a new machine, `start` first restores the
-# complete runs committed here (their small files), so only unfinished runs train again.
+# runs committed here: complete ones from their small files, unfinished ones from their small files and the latest
+# checkpoint that `sync` carried into carry/ (a new session may get a new machine: the runs of 5d8f6a0 were lost so).
 set -euo pipefail
 
-PIN=5d8f6a0  # the runs' code: never moved while a column is unfinished
-ROOT=${H45_ROOT:-/work/h45}
+PIN=6f0e1cf  # the runs' code: never moved while a column is unfinished (5d8f6a0's runs were lost with their machine)
+ROOT=${H45_ROOT:-/root/h45}  # outside /work, which a new session may lay anew
 HERE=$(cd "$(dirname "$0")" && pwd)
 REPO=$(git -C "$HERE" rev-parse --show-toplevel)
 TREE=$ROOT/tree
@@ -61,14 +63,39 @@ setup() {
     fi
 }
 
-restore() {  # complete runs committed here, on a machine that lacks them
-    local column=$1 folder
+restore() {  # runs committed here, on a machine that lacks them: complete ones, and unfinished ones with a carry
+    local column=$1 folder relative target step
     [ -d "$HERE/$column/zoo" ] || return 0
     for marker in "$HERE/$column"/zoo/*/*/compare_complete.json; do
         [ -e "$marker" ] || continue
         folder=$(dirname "$marker")
-        local target=$ROOT/logs/$column/${folder#"$HERE/$column/zoo/"}
+        target=$ROOT/logs/$column/${folder#"$HERE/$column/zoo/"}
         [ -d "$target" ] || { mkdir -p "$(dirname "$target")"; cp -r "$folder" "$target"; }
+    done
+    for step in "$HERE/carry/$column"/*/*/step-*; do  # carry/<column>/<algo>/<run>/step-N
+        [ -d "$step" ] || continue
+        relative=${step#"$HERE/carry/$column/"}; relative=$(dirname "$relative")
+        target=$ROOT/logs/$column/$relative
+        [ -d "$target" ] && continue
+        mkdir -p "$target/checkpoints"
+        cp -r "$HERE/$column/zoo/$relative/." "$target/"
+        cp -r "$step" "$target/checkpoints/"
+        echo "restored $relative at $(basename "$step") from the carry"
+    done
+}
+
+carry() {  # the latest checkpoint of every unfinished run into carry/ (a complete run's carry goes)
+    local logs=$1 column run relative latest
+    column=$(basename "$logs")
+    for run in "$logs"*/*/; do
+        run=${run%/}; relative=${run#"$logs"}
+        latest=$(ls "$run/checkpoints" 2>/dev/null | grep -E '^step-[0-9]+$' | sort -t- -k2 -n | tail -1 || true)
+        if [ -e "$run/compare_complete.json" ] || [ -z "$latest" ]; then
+            rm -rf "$HERE/carry/$column/$relative"; continue
+        fi
+        [ -d "$HERE/carry/$column/$relative/$latest" ] && continue
+        rm -rf "$HERE/carry/$column/$relative"; mkdir -p "$HERE/carry/$column/$relative"
+        cp -rp "$run/checkpoints/$latest" "$HERE/carry/$column/$relative/"
     done
 }
 
@@ -79,6 +106,8 @@ case "${1:-}" in
         (cd "$TREE" && nohup "$PY" benchmarks/compare.py "${ARGS[@]}" --jobs "${JOBS:-2}" \
             >> "$ROOT/logs/$2.out" 2>&1 &)
         echo "started $2: $ROOT/logs/$2.out" ;;
+    restore)  # what `start` restores first, alone
+        column_args "$2"; restore "$FOLDER" ;;
     sync)
         for logs in "$ROOT"/logs/*/; do  # logs/<folder>/ -> <folder>/zoo/
             column=$(basename "$logs")
@@ -88,6 +117,7 @@ case "${1:-}" in
                 mkdir -p "$HERE/$column/zoo/$(dirname "$file")"
                 cp -p "$logs/$file" "$HERE/$column/zoo/$file"
             done
+            carry "$logs"
         done ;;
     report)
         column_args "$2" report
