@@ -23,8 +23,7 @@ Under a bf16 autocast the whole forward runs in bf16 on bf16 copies of the param
 update (:class:`ParameterCache`; autocast would cast every weight at every call and mix dtypes in the element-wise
 ops).
 
-Measurements behind these choices are in ``benchmarks/RESULTS.md`` (``benchmarks/speed/planner_parts.py``,
-``benchmarks/speed/planning_speed.py``).
+Why these choices: docs/results.md, "Planner speed".
 """
 
 from __future__ import annotations

@@ -244,8 +244,8 @@ class POPLINPolicy(BasePolicy):
     :param obs_preproc: the task's model-input hook (see :mod:`sb3_poplin.dynamics`); ``None``: the default
     :param targ_proc: the task's model-target hook; ``None``: the delta
     :param obs_postproc: the inverse of ``targ_proc``; ``None``: ``obs + prediction``
-    :param standardise_targets: the dynamics model standardises its targets (default ``False``, as ``POPLIN``'s
-        since the fidelity A/B of issue 19: raw targets, as PETS's code)
+    :param standardise_targets: the dynamics model standardises its targets (default ``False``, as ``POPLIN``'s:
+        raw targets, as PETS's code)
     :param policy_input_exclude: observation indices the policy network does not see; ``None``:
         ``model_input_exclude``
     :param policy_obs_preproc: the policy network's input features from raw observations (instead of

@@ -36,12 +36,22 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.save_util import load_from_zip_file, recursive_getattr, save_to_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, TensorDict
 
-from sb3_poplin import saving, variants
+from sb3_poplin import compat, saving, variants
 from sb3_poplin.distillation import Distiller
 from sb3_poplin.dynamics import FitResult
 from sb3_poplin.planning import MPCController, MPCPlanner, PolicySearchSpace
 from sb3_poplin.policies import POPLINPolicy
-from sb3_poplin.tasks import RewardFn, TerminationFn, check_spaces, env_id, max_episode_steps, resolve_task, task_env_kwargs
+from sb3_poplin.tasks import (
+    ModelHooks,
+    RewardFn,
+    TerminationFn,
+    check_spaces,
+    env_id,
+    max_episode_steps,
+    resolve_task,
+    task_env_kwargs,
+    task_hooks,
+)
 
 SelfPOPLIN = TypeVar("SelfPOPLIN", bound="POPLIN")
 
@@ -95,11 +105,10 @@ class POPLIN(OffPolicyAlgorithm):
     :param distill_window: BC and GAN train on the most recent ``distill_window`` planned real steps (recorded
         when acting, so they stay valid targets as the policy changes); ``None``: only the steps since the last
         distillation, as in the original code; ``"auto"``: the variant's default (POPLIN-A 10 000, POPLIN-P
-        ``None``: chosen by the fidelity A/B, see docs/results.md). Avg always uses the steps since the last update.
+        ``None``; why: docs/results.md). Avg always uses the steps since the last update.
     :param avg_update: POPLIN-P Avg only: ``"overwrite"`` (``theta <- mean(omega)``, what the original code does:
         from the second update on the search runs around near-zero weights) or ``"add"`` (``theta <- theta +
-        avg_step_size * mean(omega)``). Overwrite by the fidelity A/B on Pendulum (4 seeds; see docs/results.md): the
-        same MPC returns, better training returns and policy control than ``"add"`` with step 0.1
+        avg_step_size * mean(omega)``); why overwrite is the default: docs/results.md
     :param avg_step_size: ``avg_update="add"`` only: the step, in (0, 1]. 1 is the paper's equation, which drives the
         clipped policy output into saturation within a few episodes (a policy stuck at full torque that the
         parameter noise cannot leave); 0.1 averages the planner's perturbations over about ten episodes
@@ -107,7 +116,7 @@ class POPLIN(OffPolicyAlgorithm):
         bounds) or ``"planned"`` (the planner's first action before the clip; POPLIN-P: the network it planned
         with, perturbed by the executed perturbation: the original's BC-PR target). GAN's fake samples are clipped
         like the targets. ``None``: the variant's default, as the original code: POPLIN-A ``"executed"`` (BC-AI),
-        POPLIN-P ``"planned"`` (BC-PR; chosen by the fidelity A/B, see docs/results.md)
+        POPLIN-P ``"planned"`` (BC-PR; why: docs/results.md)
     :param whitening: what updating the policy's input whitening does to its first layer: ``"function"``
         (the first update only sets the statistics, so the normc network starts on whitened inputs; later updates
         re-express the layer so that the network's function is unchanged), ``"function_from_raw"`` (the first
@@ -134,11 +143,15 @@ class POPLIN(OffPolicyAlgorithm):
     :param holdout_ratio: fraction of the data held out for early stopping of the model fit
     :param standardise_targets: the dynamics model standardises its training targets per dimension (statistics
         refit before every fit, the learned log-variance bounds then act in standardised units); ``False`` (the
-        default since 0.3.0, chosen by the fidelity A/B): it predicts them in env units, as PETS's code did
+        default; why: docs/results.md): it predicts them in env units, as PETS's code did
     :param learned_reward: the ensemble also predicts the reward and the planner uses it;
         ``None``: only when no reward is known for the env
     :param reward_fn: ``(obs, action in env units, next_obs) -> [B]`` torch reward; overrides the task registry
     :param termination_fn: ``(obs, action, next_obs) -> bool [B]``; overrides the task registry
+    :param model_hooks: how the networks see observations (:class:`sb3_poplin.tasks.ModelHooks`: the model's input
+        features and targets, the policy's inputs), e.g. ``LocomotionHooks(...).hooks(policy=True)``; ``None``: the
+        task's (:attr:`TaskSpec.hooks <sb3_poplin.tasks.TaskSpec.hooks>`). Saved with the agent: a loaded agent's
+        networks are built from the hooks it was trained with
     :param learning_starts: random-action steps before planning; ``None``: until the model has been
         fitted once (one episode with the default ``train_freq``)
     :param train_freq: when the model is refit; ``None``: after every episode, or with several envs
@@ -165,11 +178,10 @@ class POPLIN(OffPolicyAlgorithm):
     # every setting, resolved (variants.resolve_settings): what the planner, the networks, the fit and the distillation
     # are built from. A zip holds each under its own name in its data, as every release saved them
     settings: variants.Settings
-    # not keyword arguments: the release whose task hooks (TaskSpec.model_hooks: the model's inputs and targets, the
-    # policy's inputs) the networks were built with (this release for an agent made here; a zip's keeps running as it
-    # was trained: saving.HOOKS_RELEASE_KEY), and the release that saved the zip this agent was loaded from (None for
-    # an agent made here; ``save`` records the running release, not this one)
-    model_hooks_release: str
+    # the networks' observation handling, saved with the agent (a loaded agent keeps the hooks it was trained with)
+    model_hooks: ModelHooks
+    # not a keyword argument: the release that saved the zip this agent was loaded from (None for an agent made here;
+    # ``save`` records the running release, not this one)
     sb3_poplin_version: str | None
 
     def __init__(
@@ -212,6 +224,7 @@ class POPLIN(OffPolicyAlgorithm):
         learned_reward: bool | None = None,
         reward_fn: RewardFn | None = None,
         termination_fn: TerminationFn | None = None,
+        model_hooks: ModelHooks | None = None,
         learning_starts: int | None = None,
         train_freq: int | tuple[int, str] | None = None,
         buffer_size: int = 1_000_000,
@@ -248,7 +261,13 @@ class POPLIN(OffPolicyAlgorithm):
         self.user_reward_fn = reward_fn
         self.user_termination_fn = termination_fn
         self._model_fitted = False
-        self.model_hooks_release = saving.current_release()
+        if model_hooks is not None and not isinstance(model_hooks, ModelHooks):
+            raise TypeError(
+                f"model_hooks must be a sb3_poplin.tasks.ModelHooks, got {type(model_hooks).__name__}: e.g. "
+                "ModelHooks(model_input_exclude=(0,)), or LocomotionHooks(...).hooks(policy=True)."
+            )
+        if model_hooks is not None or _init_setup_model:  # else (load) the zip's, or for an earlier release's compat's
+            self.model_hooks = model_hooks if model_hooks is not None else task_hooks(self.task_id)
         self.sb3_poplin_version = None
 
         default_train_freq = train_freq is None
@@ -299,21 +318,19 @@ class POPLIN(OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         self._collect_settings()
-        self.__dict__.pop("task_model_hooks", None)  # 0.3.0 zips' data (saving.check_saved_agent read it)
-        self.__dict__.pop("_collecting", None)  # zips of <= 0.4.2: a flag of the rollout, no longer used
-        reward_fn, termination_fn, model_hooks, learned_reward = resolve_task(
-            self.task_id,
-            self.user_reward_fn,
-            self.user_termination_fn,
-            self.settings.learned_reward,
-            hooks_release=self.model_hooks_release,
+        for key in compat.DROPPED_DATA_KEYS:  # zips of earlier releases
+            self.__dict__.pop(key, None)
+        if getattr(self, "model_hooks", None) is None:
+            raise ValueError("This agent has no model hooks: load it with POPLIN.load, or pass model_hooks=.")
+        reward_fn, termination_fn, learned_reward = resolve_task(
+            self.task_id, self.user_reward_fn, self.user_termination_fn, self.settings.learned_reward
         )
         self.settings = replace(self.settings, learned_reward=learned_reward)
         settings = self.settings
         self.policy_kwargs = dict(
             ensemble_size=settings.ensemble_size,
             dynamics_net_arch=settings.dynamics_net_arch,
-            **model_hooks,
+            **self.model_hooks.network_kwargs(),
             standardise_targets=settings.standardise_targets,
             learned_reward=settings.learned_reward,
             model_learning_rate=settings.model_learning_rate,
@@ -548,14 +565,16 @@ class POPLIN(OffPolicyAlgorithm):
         **kwargs: Any,
     ) -> SelfPOPLIN:
         """
-        Load a saved agent (an env is optional: planning needs none), also one saved by sb3_poplin 0.1.0 or 0.2.0
-        (the settings added since take the behaviour of its release, and its model runs without the task's PETS
-        hooks, as it was trained). ``sb3_poplin_version`` names the release that saved the zip. Same arguments as
-        SB3's ``load`` (``env`` may also be an env id, made with the task's env kwargs as the constructor does), plus:
+        Load a saved agent (an env is optional: planning needs none). Its networks are built with the model hooks it
+        saved, whatever the task's are now; a zip of an earlier release continues as it was trained (see
+        :mod:`sb3_poplin.compat` for which). ``sb3_poplin_version`` names the release that saved the zip. Same
+        arguments as SB3's ``load`` (``env`` may also be an env id, made with the task's env kwargs as the constructor
+        does; a setting given as a keyword, ``model_hooks=`` too, replaces the saved one), plus:
 
         :param control: ``"mpc"`` or ``"policy"`` to override the saved control mode
         """
-        kwargs = {**saving.check_saved_agent(path), **kwargs}  # a zip of an earlier release continues as it was
+        # a zip of an earlier release continues as it was trained (sb3_poplin.compat)
+        kwargs = {**saving.check_saved_agent(path, custom_objects, hooks_given="model_hooks" in kwargs), **kwargs}
         if isinstance(env, str):  # an env id, as the constructor takes
             env = gym.make(env, **task_env_kwargs(env))
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
@@ -623,7 +642,7 @@ class POPLIN(OffPolicyAlgorithm):
         state: dict[str, Any] = {name: params.pop(name) for name in PLANNER_STATE if name in params}
         legacy = self.__dict__.pop("_saved_planner_state", None)
         if legacy is not None:
-            state = {**saving.upgrade_legacy_state(legacy, with_distiller=self.distiller is not None), **state}
+            state = {**compat.upgrade_legacy_state(legacy, with_distiller=self.distiller is not None), **state}
         super().set_parameters(params, exact_match, device)  # type: ignore[arg-type]
         if "distiller" in state and self.distiller is None:
             raise ValueError(

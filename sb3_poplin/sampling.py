@@ -14,7 +14,7 @@ normal truncated to [-2, 2] (or plain normal); everything here is about computin
 - :class:`Workspace`: named flat buffers reused across calls (at POPLIN-P's sizes a fresh tensor per iteration costs
   as much in page faults as drawing the samples).
 
-Measurements behind these choices are in ``benchmarks/RESULTS.md`` (``benchmarks/speed/planner_parts.py``).
+Why these choices: docs/results.md, "Planner speed".
 """
 
 from __future__ import annotations

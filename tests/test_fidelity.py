@@ -6,7 +6,6 @@ agents of earlier releases keeping their behaviour.
 
 import math
 import json
-import zipfile
 from pathlib import Path
 
 import gymnasium as gym
@@ -21,7 +20,6 @@ from sb3_poplin.distillation import Distiller, average_perturbation, clip_straig
 from sb3_poplin.dynamics import ProbabilisticEnsemble
 from sb3_poplin.planning import PlanResult, PolicyActionNoise, PolicyParameterNoise
 from sb3_poplin.policies import Discriminator, POPLINPolicy, PolicyNetwork
-from sb3_poplin.saving import SETTINGS_BEFORE_0_3
 from sb3_poplin.tasks.hooks import LocomotionHooks
 from sb3_poplin.tasks import TaskSpec, make_env, make_task, registered_tasks
 from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, configuration, original_code_settings
@@ -279,15 +277,6 @@ def test_bad_fidelity_settings_name_the_choices():
             tiny("poplin-p", **{key: value})
 
 
-def test_a_zip_of_release_0_1_0_keeps_its_release_behaviour():
-    loaded = POPLIN.load(DATA / "legacy-0.1.0-poplin-p.zip", env=gym.make("Pendulum-v1"))
-    for key, value in SETTINGS_BEFORE_0_3.items():
-        assert getattr(loaded.settings, key) == value, key
-    assert loaded.distiller.whitening == "function_from_raw" and loaded.policy.dynamics.standardise_targets
-    with zipfile.ZipFile(DATA / "legacy-0.1.0-poplin-p.zip") as archive:
-        assert "whitening" not in json.loads(archive.read("data"))
-
-
 # ---------------------------------------------------------------- PETS's model hooks
 @pytest.mark.parametrize("task_id", registered_tasks())
 def test_obs_postproc_inverts_targ_proc_for_every_registered_task(task_id):
@@ -297,7 +286,7 @@ def test_obs_postproc_inverts_targ_proc_for_every_registered_task(task_id):
     nxt = th.as_tensor(np.stack([env.observation_space.sample() for _ in range(16)]), dtype=th.float32)
     obs, nxt = th.nan_to_num(obs.clamp(-50, 50)), th.nan_to_num(nxt.clamp(-50, 50))
     spec = make_task(task_id)
-    hooks = spec.model_hooks()
+    hooks = spec.hooks.network_kwargs()
     # the policy sees the observation without the root positions, or (HalfCheetah-v5 since 0.4.1) the model's features
     policy_exclude, policy_preproc = hooks.pop("policy_input_exclude"), hooks.pop("policy_obs_preproc")
     if task_id in POLICY_ON_MODEL_FEATURES:
@@ -402,13 +391,8 @@ def test_half_cheetah_v5_networks_see_sin_cos_of_the_pitch_and_not_x():
         moved = obs.clone()
         moved[:, 0] += 100.0  # x is hidden from the policy too
         assert th.equal(actor(moved), actor(obs))
-    # zips keep what their networks were trained with: 0.4.0's policy saw the raw pitch, 0.3.0's model too
-    spec = make_task("HalfCheetah-v5")
-    assert spec.model_hooks("0.4.0")["policy_obs_preproc"] is None and spec.model_hooks("0.4.0")["obs_preproc"] is not None
-    assert spec.model_hooks("0.4.0")["policy_input_exclude"] == [0]
-    assert spec.model_hooks("0.3.0")["obs_preproc"] is None and spec.model_hooks("0.3.0")["model_input_exclude"] == [0]
-    hooks = spec.model_hooks("0.4.1")
-    assert hooks["obs_preproc"] is not None and hooks["policy_obs_preproc"] == hooks["obs_preproc"]
+    hooks = make_task("HalfCheetah-v5").hooks  # what a new agent gets; zips keep theirs (tests/test_save_load.py)
+    assert hooks.obs_preproc is not None and hooks.policy_obs_preproc == hooks.obs_preproc
 
 
 def test_swimmer_v5_model_sees_sin_cos_of_the_body_angle_and_not_x_y():
@@ -428,8 +412,8 @@ def test_swimmer_v5_model_sees_sin_cos_of_the_body_angle_and_not_x_y():
         moved = obs.clone()
         moved[:, :2] += 100.0
         assert th.equal(actor(moved), actor(obs))
-    hooks = make_task("Swimmer-v5").model_hooks("0.4.1")  # zips of 0.4.1 and earlier: the raw model input
-    assert hooks["obs_preproc"] is None and hooks["model_input_exclude"] == [0, 1]
+    hooks = make_task("Swimmer-v5").hooks  # what a new agent gets; zips keep theirs (tests/test_save_load.py)
+    assert hooks.obs_preproc is not None and hooks.policy_exclude == (0, 1) and hooks.policy_obs_preproc is None
 
 
 def test_pets_cheetah_model_sees_sin_cos_of_the_angle_and_not_the_velocity():

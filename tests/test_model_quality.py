@@ -18,7 +18,6 @@ from sb3_poplin.analysis.model_quality import (
     fit_after_every_episode,
     model_quality,
     record,
-    task_hooks,
 )
 from sb3_poplin.tasks import make_env, make_task
 from sb3_poplin.tasks.hooks import LocomotionHooks
@@ -322,22 +321,19 @@ def half_cheetah_dataset(episodes=3, steps=60, seed=0):
     return TransitionDataset("HalfCheetah-v5", **{k: np.array(v) for k, v in columns.items()})
 
 
-def test_the_chosen_candidate_is_the_registered_task_and_the_swap_is_undone():
+def test_the_chosen_candidate_is_the_registered_task_and_the_registry_is_untouched():
     data = half_cheetah_dataset()
     settings = dict(ensemble_size=2, dynamics_net_arch=(16, 16), model_epochs=2)
     kwargs = dict(ks=(1, 5), return_horizons=(5,), stride=10)
     candidates = HOOK_CANDIDATES["HalfCheetah-v5"]
     registered = make_task("HalfCheetah-v5")
     task = model_quality(data, 2, 1, settings, None, 0, **kwargs)
-    chosen = model_quality(data, 2, 1, settings, candidates[HALF_CHEETAH_HOOKS].model_hooks(), 0, **kwargs)
-    raw = model_quality(data, 2, 1, settings, candidates["raw"].model_hooks(), 0, **kwargs)
-    assert make_task("HalfCheetah-v5") is registered
+    chosen = model_quality(data, 2, 1, settings, candidates[HALF_CHEETAH_HOOKS].hooks(), 0, **kwargs)
+    raw = model_quality(data, 2, 1, settings, candidates["raw"].hooks(), 0, **kwargs)
+    assert make_task("HalfCheetah-v5") is registered  # the hooks go to the agent, not into the registry
     for key in ("state_error", "return_error", "nll", "mse"):
         assert task[key] == chosen[key], key
     assert raw["return_error"] != chosen["return_error"]  # other inputs: another model
-    with task_hooks("HalfCheetah-v5", candidates["raw"].model_hooks()):
-        assert make_task("HalfCheetah-v5").obs_preproc == candidates["raw"].obs_preproc
-    assert make_task("HalfCheetah-v5").obs_preproc == candidates[HALF_CHEETAH_HOOKS].obs_preproc
 
 
 def test_commands_record_and_measure(tmp_path):
@@ -361,46 +357,43 @@ def test_commands_record_and_measure(tmp_path):
         analysis_main(["model-quality", "--data", str(path), "--params", "model_epochs", "--output", str(tmp_path)])
 
 
-# ------------------------------------------------------------------------------------------------ hooks across releases
-def test_model_hooks_of_a_release_and_the_policy_inputs(monkeypatch):
-    from dataclasses import replace
-
-    import sb3_poplin.tasks as tasks
+# ------------------------------------------------------------------------------------------------ hooks as agent state
+def test_model_hooks_are_an_argument_and_checked():
     from sb3_poplin import POPLIN
+    from sb3_poplin.tasks import ModelHooks
 
     new = HOOK_CANDIDATES["HalfCheetah-v5"]["sincos+progress"]
-    raw = dict(model_input_exclude=(0,), obs_preproc=None, targ_proc=None, obs_postproc=None, policy_input_exclude=(0,))
-    spec = replace(make_task("HalfCheetah-v5"), earlier_hooks=(("9.9.9", raw),), **new.model_hooks())
-    assert spec.model_hooks()["obs_preproc"] == new.obs_preproc and spec.model_hooks("9.9.9")["obs_preproc"] is not None
-    assert spec.model_hooks("9.9.8")["obs_preproc"] is None and spec.model_hooks("0.3.0")["model_input_exclude"] == [0]
-    monkeypatch.setitem(tasks._REGISTRY, "HalfCheetah-v5", spec)
-    agent = POPLIN("poplin-p", "HalfCheetah-v5", seed=0, **TINY)
-    # built by this release (before 9.9.9): the earlier hooks; the policy never sees x
+    agent = POPLIN("poplin-p", "HalfCheetah-v5", seed=0, model_hooks=new.hooks(), **TINY)
+    assert agent.model_hooks == new.hooks() and agent.policy.dynamics.hooks[0] == new.obs_preproc
+    assert agent.policy.actor.in_dim == 17  # policy=False: the raw observation without x
+    assert POPLIN("pets", "HalfCheetah-v5", seed=0, **TINY).model_hooks == make_task("HalfCheetah-v5").hooks
+    raw = ModelHooks(model_input_exclude=(0,))
+    agent = POPLIN("poplin-p", "HalfCheetah-v5", seed=0, model_hooks=raw, **TINY)
     assert agent.policy.dynamics.hooks[0] is None and agent.policy.dynamics.in_dim == 17 + 6
-    assert agent.policy.actor.in_dim == 17
-    agent.model_hooks_release = "9.9.9"
-    agent._setup_model()
-    assert agent.policy.dynamics.hooks[0] == new.obs_preproc and agent.policy.actor.in_dim == 17
-    with pytest.raises(ValueError, match=r"earlier_hooks for release 1\.0\.0 changes \['reward_fn'\]"):
-        replace(spec, earlier_hooks=(("1.0.0", dict(reward_fn=None)),))
+    assert agent.policy.actor.in_dim == 17 and raw.policy_exclude == (0,)
+    with pytest.raises(
+        TypeError, match=r"model_hooks must be a sb3_poplin.tasks.ModelHooks, got LocomotionHooks.*hooks\(policy=True\)"
+    ):
+        POPLIN("pets", "HalfCheetah-v5", model_hooks=new, **TINY)
     with pytest.raises(ValueError, match="Pass either input_exclude or obs_preproc"):
-        replace(spec, earlier_hooks=(("1.0.0", dict(model_input_exclude=(0,))),))
+        ModelHooks(model_input_exclude=(0,), obs_preproc=new.obs_preproc)
+    with pytest.raises(ValueError, match="targ_proc and obs_postproc come together"):
+        ModelHooks(targ_proc=new.targ_proc)
     with pytest.raises(ValueError, match=r"the policy takes either policy_input_exclude .* or policy_obs_preproc"):
-        replace(spec, policy_obs_preproc=new.obs_preproc)
+        ModelHooks(model_input_exclude=(0,), policy_obs_preproc=new.obs_preproc)
+    with pytest.raises(ValueError, match=r"TaskSpec 'HalfCheetah-v5': the policy takes either"):
+        from dataclasses import replace
+
+        replace(make_task("HalfCheetah-v5"), policy_obs_preproc=new.obs_preproc, policy_input_exclude=(0,))
 
 
 def test_the_policy_can_see_the_model_features(monkeypatch):
-    from dataclasses import replace
 
-    import sb3_poplin.tasks as tasks
     from sb3_poplin import POPLIN
     from sb3_poplin.policies import PolicyNetwork
 
     hooks = HOOK_CANDIDATES["HalfCheetah-v5"]["sincos"]
-    monkeypatch.setitem(
-        tasks._REGISTRY, "HalfCheetah-v5", replace(make_task("HalfCheetah-v5"), **hooks.model_hooks(policy=True))
-    )
-    agent = POPLIN("poplin-p", "HalfCheetah-v5", seed=0, **TINY)
+    agent = POPLIN("poplin-p", "HalfCheetah-v5", seed=0, model_hooks=hooks.hooks(policy=True), **TINY)
     actor = agent.policy.actor
     assert actor.in_dim == hooks.feature_dim == 18
     obs = th.randn(7, 18)
@@ -420,28 +413,24 @@ def test_a_zip_keeps_the_hooks_it_was_trained_with(tmp_path, monkeypatch):
     import sb3_poplin.tasks as tasks
     from sb3_poplin import POPLIN
 
-    agent = POPLIN("pets", "HalfCheetah-v5", seed=0, **TINY)
-    agent.save(tmp_path / "raw.zip")
+    agent = POPLIN("poplin-p", "HalfCheetah-v5", seed=0, **TINY)
+    agent.save(tmp_path / "agent.zip")
     obs = th.as_tensor(make_env("HalfCheetah-v5").reset(seed=0)[0], dtype=th.float32).repeat(3, 1)
     actions = th.zeros(3, 6)
     before, _ = agent.policy.dynamics.propagate(obs.unsqueeze(1), actions.unsqueeze(1), "expectation")
-    # a later release gives the task the progress target (the same inputs): zips of this release keep the delta target
-    progress = HOOK_CANDIDATES["HalfCheetah-v5"]["sincos+progress"].model_hooks()
-    now = {
-        k: v for k, v in make_task("HalfCheetah-v5").model_hooks().items() if k in ("obs_preproc", "targ_proc", "obs_postproc")
-    }
-    assert now["obs_preproc"] == HOOK_CANDIDATES["HalfCheetah-v5"]["sincos"].obs_preproc and now["targ_proc"] is None
-    later = replace(
-        make_task("HalfCheetah-v5"),
-        **{**progress, "policy_input_exclude": (0,)},
-        earlier_hooks=(("9.9.9", dict(model_input_exclude=(), **now)),),
-    )
-    monkeypatch.setitem(tasks._REGISTRY, "HalfCheetah-v5", later)
-    loaded = POPLIN.load(tmp_path / "raw.zip")
+    # a later release gives the task other hooks (the progress target, the raw policy input): only its spec changes,
+    # and zips of this release keep theirs
+    progress = HOOK_CANDIDATES["HalfCheetah-v5"]["sincos+progress"].model_hooks(policy=False)
+    monkeypatch.setitem(tasks._REGISTRY, "HalfCheetah-v5", replace(make_task("HalfCheetah-v5"), **progress))
+    assert make_task("HalfCheetah-v5").hooks != agent.model_hooks
+    loaded = POPLIN.load(tmp_path / "agent.zip")
     after, _ = loaded.policy.dynamics.propagate(obs.unsqueeze(1), actions.unsqueeze(1), "expectation")
-    assert loaded.policy.model_hooks["targ_proc"] is None and th.equal(before, after)
-    loaded.model_hooks_release = "9.9.9"  # as if trained by the later release: the progress target
-    loaded._setup_model()
-    loaded.policy.load_state_dict(agent.policy.state_dict())
-    moved, _ = loaded.policy.dynamics.propagate(obs.unsqueeze(1), actions.unsqueeze(1), "expectation")
-    assert not th.allclose(moved[..., 0], before[..., 0])  # the x entry now read as a velocity
+    assert loaded.model_hooks == agent.model_hooks and loaded.policy.model_hooks["targ_proc"] is None
+    assert th.equal(before, after) and loaded.policy.actor.in_dim == agent.policy.actor.in_dim == 18
+    fresh = POPLIN("poplin-p", "HalfCheetah-v5", seed=0, **TINY)  # a new agent takes the task's new hooks
+    fresh.policy.dynamics.load_state_dict(agent.policy.dynamics.state_dict())
+    moved, _ = fresh.policy.dynamics.propagate(obs.unsqueeze(1), actions.unsqueeze(1), "expectation")
+    assert fresh.policy.actor.in_dim == 17 and not th.allclose(moved[..., 0], before[..., 0])  # x read as a velocity
+    other = HOOK_CANDIDATES["HalfCheetah-v5"]["sincos+progress"].hooks(policy=True)  # the same network shapes
+    given = POPLIN.load(tmp_path / "agent.zip", model_hooks=other)  # load(model_hooks=) replaces the saved ones
+    assert given.model_hooks == other and given.policy.model_hooks["targ_proc"] == other.targ_proc

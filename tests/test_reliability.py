@@ -2,7 +2,6 @@
 
 import functools
 import io
-import json
 import warnings
 import zipfile
 from collections import deque
@@ -30,13 +29,11 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from conftest import TINY, tiny
+from conftest import TINY
 
-import sb3_poplin
 from sb3_poplin import POPLIN, resume
 from sb3_poplin.callbacks import ControlModesEvalCallback
 from sb3_poplin.policies import PolicyNetwork
-from sb3_poplin.tasks.paper import pets_cheetah_obs_postproc, pets_cheetah_obs_preproc, pets_cheetah_targ_proc
 
 
 class SpaceEnv(gym.Env):
@@ -132,173 +129,7 @@ def test_loading_a_zip_with_a_corrupted_member(saved):
         POPLIN.load(saved / "bad_crc.zip")
 
 
-DATA = Path(__file__).resolve().parent / "data"
-LEGACY_OBS = np.array([[0.3, 0.95, -1.0], [-1.0, 0.0, 2.0]], dtype=np.float32)
-
-
-@pytest.mark.parametrize("variant", ["pets", "poplin-p"])
-def test_zips_of_release_0_1_0_load_and_keep_training(tmp_path, variant):
-    """Zips written by sb3_poplin 0.1.0 (tests/data/make_legacy_zips.py): same plans, state kept, training goes on."""
-    path = DATA / f"legacy-0.1.0-{variant}.zip"
-    with zipfile.ZipFile(path) as archive:
-        assert "mpc.pth" not in archive.namelist()  # the old layout: the planner state inside data
-    loaded = POPLIN.load(path, env=gym.make("Pendulum-v1"))
-    assert loaded.sb3_poplin_version == "0.1.0"  # inferred: the zip does not record it
-    # the same plan as 0.1.0 made right after loading its own zip: generator and networks restored. To float32
-    # rounding, not bit for bit: on an Intel Xeon (2026-12-02) the planned action differs from the file by one ulp at
-    # 2afc14c already (CI on the AMD EPYC hosts matched it exactly), and the batched matmuls that small
-    # populations now take (kernels.PROBE_MIN_ROWS) round differently again; an unrestored generator or network moves
-    # the actions by far more than 1e-6
-    planned = loaded.predict(LEGACY_OBS, episode_start=np.ones(2, dtype=bool))[0]
-    np.testing.assert_allclose(planned, np.load(DATA / f"legacy-0.1.0-{variant}-mpc.npy"), rtol=0, atol=1e-6)
-    if variant == "poplin-p":  # saved in mid-episode: the 100 planned steps since the last distillation
-        assert len(loaded.distiller.planned) == 100 and all(r["keep"].all() for r in loaded.distiller.planned)
-    loaded.learn(200, reset_num_timesteps=False)
-    loaded.save(tmp_path / "resaved")
-    with zipfile.ZipFile(tmp_path / "resaved.zip") as archive:
-        assert "mpc.pth" in archive.namelist()
-        data = json.loads(archive.read("data"))
-        assert data.get("_saved_planner_state") is None
-        assert data["sb3_poplin_version"] == sb3_poplin.__version__  # the release that saved it, not the loaded one's
-    assert loaded.sb3_poplin_version == "0.1.0"  # still the release of the zip it was loaded from
-    resaved = POPLIN.load(tmp_path / "resaved")
-    assert resaved.num_timesteps == loaded.num_timesteps and resaved.sb3_poplin_version == sb3_poplin.__version__
-
-
-def test_a_zip_without_any_planner_state_names_the_versions(tmp_path):
-    with zipfile.ZipFile(DATA / "legacy-0.1.0-pets.zip") as archive:
-        members = {name: archive.read(name) for name in archive.namelist()}
-    data = json.loads(members["data"])
-    del data["_saved_planner_state"]
-    members["data"] = json.dumps(data).encode()
-    with zipfile.ZipFile(tmp_path / "stripped.zip", "w") as archive:
-        for name, content in members.items():
-            archive.writestr(name, content)
-    with pytest.raises(ValueError, match=r"sb3_poplin >= 0\.2\.0 \(mpc\.pth\).*sb3_poplin 0\.1\.0.*Save the agent again"):
-        POPLIN.load(tmp_path / "stripped.zip")
-
-
-def saved_data(path):
-    """The ``data`` of a zip, read as JSON without our loader."""
-    with zipfile.ZipFile(path) as archive:
-        return json.loads(archive.read("data"))
-
-
-def rewrite_data(source, target, change):
-    """Copy the zip ``source`` to ``target`` with ``change(data)`` applied to its ``data``."""
-    with zipfile.ZipFile(source) as archive:
-        members = {name: archive.read(name) for name in archive.namelist()}
-    data = json.loads(members["data"])
-    change(data)
-    members["data"] = json.dumps(data).encode()
-    with zipfile.ZipFile(target, "w") as archive:
-        for name, content in members.items():
-            archive.writestr(name, content)
-
-
-def test_zips_record_the_release_that_saved_them(tmp_path):
-    model = tiny()
-    assert model.sb3_poplin_version is None  # made here, not loaded
-    model.save(tmp_path / "agent.zip")
-    assert saved_data(tmp_path / "agent.zip")["sb3_poplin_version"] == sb3_poplin.__version__
-    assert model.sb3_poplin_version is None
-    assert POPLIN.load(tmp_path / "agent").sb3_poplin_version == sb3_poplin.__version__
-    # a recorded release is taken as it is, also one that differs from the running one
-    rewrite_data(tmp_path / "agent.zip", tmp_path / "future.zip", lambda data: data.update(sb3_poplin_version="9.9.9"))
-    assert POPLIN.load(tmp_path / "future.zip").sb3_poplin_version == "9.9.9"
-    # a zip of 0.3.0's behaviour saved before releases recorded themselves
-    rewrite_data(tmp_path / "agent.zip", tmp_path / "unrecorded.zip", lambda data: data.pop("sb3_poplin_version"))
-    assert POPLIN.load(tmp_path / "unrecorded.zip").sb3_poplin_version == "0.3.0"
-
-
-CHEETAH = "sb3_poplin/PETSCheetah-v0"
-CHEETAH_HOOKS = dict(
-    obs_preproc=pets_cheetah_obs_preproc, targ_proc=pets_cheetah_targ_proc, obs_postproc=pets_cheetah_obs_postproc
-)
-NO_HOOKS = dict(obs_preproc=None, targ_proc=None, obs_postproc=None)
-
-
-def test_a_pets_cheetah_zip_of_release_0_2_0_runs_its_model_without_the_hooks_of_0_3_0(tmp_path):
-    """
-    0.3.0 gave PETSCheetah's task PETS's model hooks; a 0.2.0 zip (tests/data/make_legacy_0_2_0_zips.py), trained
-    without them, loads without them: 0.2.0's predictions and plan.
-    """
-    path = DATA / "legacy-0.2.0-pets-cheetah.zip"
-    recorded = np.load(DATA / "legacy-0.2.0-pets-cheetah.npz")
-    loaded = POPLIN.load(path)
-    assert loaded.sb3_poplin_version == "0.2.0" and loaded.model_hooks_release == "0.2.0"
-    dynamics = loaded.policy.dynamics
-    assert loaded.policy.model_hooks == NO_HOOKS and dynamics.hooks[0] is None
-    assert (dynamics.in_dim, dynamics.out_dim) == (18 + 6, 18)
-    obs, actions = th.as_tensor(recorded["obs"]), th.as_tensor(recorded["actions"])
-    assert th.equal(dynamics.raw_input(obs, actions), th.cat([obs, actions], dim=1))  # raw observations in
-    with th.no_grad():
-        predicted, _ = dynamics.propagate(obs.unsqueeze(1), actions.unsqueeze(1), "expectation")
-    # float32 rounding apart (0.3.0's batched forward for small batches); with the hooks the predicted velocity
-    # alone is off by about the velocity itself
-    np.testing.assert_allclose(predicted.squeeze(1).numpy(), recorded["predicted"], rtol=1e-5, atol=1e-5)
-    planned = loaded.predict(recorded["obs"], episode_start=np.ones(len(obs), dtype=bool))[0]
-    np.testing.assert_allclose(planned, recorded["planned"], rtol=0, atol=1e-5)
-    # saved again, it records this release and still runs without the hooks
-    loaded.save(tmp_path / "resaved.zip")
-    data = saved_data(tmp_path / "resaved.zip")
-    assert data["sb3_poplin_version"] == sb3_poplin.__version__ and data["model_hooks_release"] == "0.2.0"
-    resaved = POPLIN.load(tmp_path / "resaved.zip")
-    assert resaved.model_hooks_release == "0.2.0" and resaved.policy.model_hooks == NO_HOOKS
-
-
-@pytest.mark.parametrize("release, task", [("0.3.0", "half-cheetah"), ("0.4.0", "half-cheetah"), ("0.4.1", "swimmer")])
-@pytest.mark.parametrize("variant", ["pets", "poplin-p"])
-def test_zips_of_earlier_releases_load_and_plan_as_they_did(variant, release, task, tmp_path):
-    """
-    Zips written by earlier code (tests/data/make_legacy_0_3_0_zips.py) on tasks whose hooks changed after it:
-    HalfCheetah-v5 by 0.3.0 and 0.4.0 (0.4.0: the model's pitch as sine and cosine; 0.4.1: the policy's too),
-    Swimmer-v5 by 0.4.1 (0.4.2: the model's body angle as sine and cosine). The same predictions, plans and policy
-    actions as that release gave right after saving them.
-    """
-    path = DATA / f"legacy-{release}-{variant}-{task}.zip"
-    recorded = np.load(DATA / f"legacy-{release}-{variant}-{task}.npz")
-    loaded = POPLIN.load(path)
-    assert loaded.sb3_poplin_version == release and loaded.model_hooks_release == release
-    obs, actions = th.as_tensor(recorded["obs"]), th.as_tensor(recorded["actions"])
-    with th.no_grad():
-        predicted, _ = loaded.policy.dynamics.propagate(obs.unsqueeze(1), actions.unsqueeze(1), "expectation")
-    np.testing.assert_allclose(predicted.squeeze(1).numpy(), recorded["predicted"], rtol=1e-5, atol=1e-5)
-    planned = loaded.predict(recorded["obs"], episode_start=np.ones(len(obs), dtype=bool))[0]
-    np.testing.assert_allclose(planned, recorded["planned"], rtol=0, atol=1e-5)
-    if variant == "poplin-p":
-        loaded.control = "policy"
-        np.testing.assert_allclose(loaded.predict(recorded["obs"])[0], recorded["policy_actions"], rtol=0, atol=1e-6)
-    # saved again by this release, it keeps its release's hooks
-    loaded.save(tmp_path / "resaved.zip")
-    assert saved_data(tmp_path / "resaved.zip")["model_hooks_release"] == release
-
-
-def test_pets_cheetah_agents_of_release_0_3_0_keep_the_model_hooks(tmp_path):
-    model = tiny("pets", CHEETAH)
-    assert model.model_hooks_release == sb3_poplin.__version__ and model.policy.model_hooks == CHEETAH_HOOKS
-    model.save(tmp_path / "agent.zip")
-    assert POPLIN.load(tmp_path / "agent.zip").policy.model_hooks == CHEETAH_HOOKS
-
-    def unrecorded(data):  # saved by 0.3.0's behaviour before zips recorded their release and the hooks setting
-        del data["sb3_poplin_version"], data["model_hooks_release"]
-
-    rewrite_data(tmp_path / "agent.zip", tmp_path / "unrecorded.zip", unrecorded)
-    loaded = POPLIN.load(tmp_path / "unrecorded.zip")
-    assert loaded.sb3_poplin_version == "0.3.0" and loaded.policy.model_hooks == CHEETAH_HOOKS
-
-    def as_saved_by_0_3_0(hooks):  # 0.3.0 recorded whether the model took the task's hooks, not their release
-        def rewrite(data):
-            del data["model_hooks_release"]
-            data.update(sb3_poplin_version="0.3.0", task_model_hooks=hooks)
-
-        return rewrite
-
-    for hooks, expected in ((True, CHEETAH_HOOKS), (False, NO_HOOKS)):  # False: a 0.2.0 agent 0.3.0 saved again
-        rewrite_data(tmp_path / "agent.zip", tmp_path / "by_0_3_0.zip", as_saved_by_0_3_0(hooks))
-        loaded = POPLIN.load(tmp_path / "by_0_3_0.zip")
-        assert loaded.policy.model_hooks == expected and loaded.model_hooks_release == ("0.3.0" if hooks else "0.2.0")
-        assert "task_model_hooks" not in vars(loaded)
+# zips of earlier releases: tests/test_save_load.py
 
 
 def test_new_zips_hold_the_mpc_and_distiller_state(tmp_path):

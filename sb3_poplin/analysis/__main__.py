@@ -31,7 +31,7 @@ from sb3_poplin.analysis.surface import plot_surface, reward_surface
 from sb3_poplin.common import parse_params
 from sb3_poplin.poplin import POPLIN
 from sb3_poplin.presets import poplin_settings
-from sb3_poplin.tasks import make_env
+from sb3_poplin.tasks import ModelHooks, make_env
 from sb3_poplin.variants import replanner
 
 
@@ -152,17 +152,17 @@ def checkpoint_dataset(path: str, env_id: str, meta: dict[str, Any]) -> Transiti
         )
 
 
-def hook_candidates(env_id: str, names: Sequence[str]) -> dict[str, dict[str, Any] | None]:
+def hook_candidates(env_id: str, names: Sequence[str]) -> dict[str, ModelHooks | None]:
     """The model hooks of ``--hooks``: ``task`` (the registered spec's) or a name of ``HOOK_CANDIDATES``."""
     from sb3_poplin.tasks.mujoco import HOOK_CANDIDATES
 
     known = HOOK_CANDIDATES.get(env_id, {})
-    chosen: dict[str, dict[str, Any] | None] = {}
+    chosen: dict[str, ModelHooks | None] = {}
     for name in names:
         if name == "task":
             chosen[name] = None
         elif name in known:
-            chosen[name] = known[name].model_hooks()
+            chosen[name] = known[name].hooks()
         else:
             raise SystemExit(f"--hooks {name!r}: {env_id} has the candidates {['task', *known]}.")
     return chosen

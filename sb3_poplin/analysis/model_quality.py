@@ -22,15 +22,14 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 import torch as th
 
-from sb3_poplin.tasks import RewardFn, TerminationFn, make_task, register_task
+from sb3_poplin.tasks import ModelHooks, RewardFn, TerminationFn, make_task
 
 DATASET_FORMAT = 1
 ARRAYS = ("obs", "actions", "rewards", "next_obs", "terminated", "episode")
@@ -366,38 +365,20 @@ def evaluate(
 
 
 # ------------------------------------------------------------------------------------------------ configurations
-@contextmanager
-def task_hooks(env_id: str, hooks: dict[str, Any] | None) -> Iterator[None]:
-    """
-    Inside the block, the registered task of ``env_id`` has other model hooks (``model_input_exclude``,
-    ``obs_preproc``, ``targ_proc``, ``obs_postproc``); an agent made there keeps them. ``None``: the task's own.
-    """
-    if hooks is None:
-        yield
-        return
-    original = make_task(env_id)
-    register_task(replace(original, **hooks), overwrite=True)
-    try:
-        yield
-    finally:
-        register_task(original, overwrite=True)
-
-
-def model_agent(env_id: str, settings: dict[str, Any], hooks: dict[str, Any] | None = None, seed: int = 0) -> Any:
+def model_agent(env_id: str, settings: dict[str, Any], hooks: ModelHooks | None = None, seed: int = 0) -> Any:
     """
     A PETS agent with a preset's model settings, whose ensemble is the model under test.
 
     :param env_id: the dataset's task
     :param settings: POPLIN keyword arguments (``ensemble_size``, ``dynamics_net_arch``, ``model_epochs``, ...)
-    :param hooks: model hooks in place of the task's (:func:`task_hooks`)
+    :param hooks: model hooks in place of the task's
     :param seed: seeds the initialisation and the fits' bootstrap and shuffling
     """
     from sb3_poplin import POPLIN
     from sb3_poplin.tasks import make_env
 
     kept = {k: v for k, v in settings.items() if k not in ("policy", "noise")}
-    with task_hooks(env_id, hooks):
-        return POPLIN("pets", make_env(env_id), seed=seed, device="cpu", **kept)
+    return POPLIN("pets", make_env(env_id), seed=seed, device="cpu", model_hooks=hooks, **kept)
 
 
 def model_quality(
@@ -405,7 +386,7 @@ def model_quality(
     train_episodes: int,
     heldout_episodes: int | None = None,
     settings: dict[str, Any] | None = None,
-    hooks: dict[str, Any] | None = None,
+    hooks: ModelHooks | None = None,
     seed: int = 0,
     **evaluate_kwargs: Any,
 ) -> dict[str, Any]:

@@ -16,7 +16,8 @@ from typing import Any
 
 import gymnasium as gym
 import torch as th
-from packaging.version import Version
+
+from sb3_poplin.tasks.hooks import ModelHooks
 
 RewardFn = Callable[[th.Tensor, th.Tensor, th.Tensor], th.Tensor]
 TerminationFn = Callable[[th.Tensor, th.Tensor, th.Tensor], th.Tensor]
@@ -46,9 +47,6 @@ class TaskSpec:
         ``model_input_exclude`` (give it with an ``obs_preproc`` that drops the root position itself)
     :param policy_obs_preproc: the policy network's input features from raw observations (e.g. the model's
         ``obs_preproc``); ``None``: the observation without ``policy_input_exclude``
-    :param earlier_hooks: the model hooks of earlier releases, as ``(release, changes)`` pairs: a model trained by a
-        release before ``release`` used this spec's hooks with ``changes`` (keys of :meth:`model_hooks`), so that its
-        zip keeps running as it was trained (:meth:`model_hooks` with that release)
     :param description: one line for the task table (docs/tasks.md)
     """
 
@@ -62,53 +60,28 @@ class TaskSpec:
     obs_postproc: Callable[[th.Tensor, th.Tensor], th.Tensor] | None = None
     policy_input_exclude: tuple[int, ...] | None = None
     policy_obs_preproc: Callable[[th.Tensor], th.Tensor] | None = None
-    earlier_hooks: tuple[tuple[str, dict[str, Any]], ...] = ()
     description: str = ""
 
     def __post_init__(self) -> None:
-        from sb3_poplin.dynamics import check_model_hooks
+        try:
+            self.hooks  # noqa: B018 (validates)
+        except ValueError as error:
+            raise ValueError(f"TaskSpec {self.env_id!r}: {str(error).removeprefix('ModelHooks: ')}") from None
 
-        owner = f"TaskSpec {self.env_id!r}: "
-        for release, changes in ((None, {}), *self.earlier_hooks):
-            unknown = sorted(set(changes) - set(HOOK_KEYS))
-            if unknown:
-                raise ValueError(f"{owner}earlier_hooks for release {release} changes {unknown}; the hooks are {HOOK_KEYS}.")
-            hooks = {**self.model_hooks(), **changes}
-            check_model_hooks(
-                hooks["model_input_exclude"], hooks["obs_preproc"], hooks["targ_proc"], hooks["obs_postproc"], owner=owner
-            )
-            if hooks["policy_obs_preproc"] is not None and hooks["policy_input_exclude"]:
-                raise ValueError(
-                    f"{owner}the policy takes either policy_input_exclude (by default model_input_exclude) or "
-                    "policy_obs_preproc, not both: pass policy_input_exclude=() and drop the indices inside the preproc."
-                )
-
-    def model_hooks(self, release: str | None = None) -> dict[str, Any]:
-        """
-        The networks' keyword arguments for this task's observation handling (:data:`HOOK_KEYS`).
-
-        :param release: the release whose hooks a model was trained with (``POPLIN.model_hooks_release``); ``None``:
-            this release's
-        """
-        hooks: dict[str, Any] = dict(
-            model_input_exclude=list(self.model_input_exclude),
+    @property
+    def hooks(self) -> ModelHooks:
+        """The networks' observation handling of this task: what a new agent is built with (``POPLIN(model_hooks=)``)."""
+        return ModelHooks(
+            model_input_exclude=self.model_input_exclude,
             obs_preproc=self.obs_preproc,
             targ_proc=self.targ_proc,
             obs_postproc=self.obs_postproc,
-            policy_input_exclude=list(
-                self.model_input_exclude if self.policy_input_exclude is None else self.policy_input_exclude
-            ),
+            policy_input_exclude=self.policy_input_exclude,
             policy_obs_preproc=self.policy_obs_preproc,
         )
-        if release is not None:
-            for until, changes in sorted(self.earlier_hooks, key=lambda pair: Version(pair[0])):
-                if Version(release) < Version(until):
-                    hooks.update({k: list(v) if k.endswith("exclude") else v for k, v in changes.items()})
-                    break
-        return hooks
 
 
-# what TaskSpec.model_hooks gives: the dynamics model's hooks and the policy network's inputs
+# the fields of ModelHooks (and of TaskSpec that make them): the dynamics model's hooks and the policy network's inputs
 HOOK_KEYS = ("model_input_exclude", "obs_preproc", "targ_proc", "obs_postproc", "policy_input_exclude", "policy_obs_preproc")
 
 
@@ -193,9 +166,11 @@ from sb3_poplin.tasks.env_util import (  # noqa: E402
     max_episode_steps,
     resolve_task,
     task_env_kwargs,
+    task_hooks,
 )
 
 __all__ = [
+    "ModelHooks",
     "RewardFn",
     "TaskSpec",
     "TerminationFn",
@@ -211,4 +186,5 @@ __all__ = [
     "resolve_task",
     "squared_norm",
     "task_env_kwargs",
+    "task_hooks",
 ]

@@ -16,6 +16,7 @@ from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_poplin.tasks import RewardFn, TerminationFn, check_observation_space, has_task, make_task
+from sb3_poplin.tasks.hooks import ModelHooks
 
 
 def _spec(env: GymEnv) -> Any:
@@ -97,8 +98,7 @@ def resolve_task(
     reward_fn: RewardFn | None,
     termination_fn: TerminationFn | None,
     learned_reward: bool | None,
-    hooks_release: str | None = None,
-) -> tuple[RewardFn | None, TerminationFn | None, dict[str, Any], bool]:
+) -> tuple[RewardFn | None, TerminationFn | None, bool]:
     """
     What the planner uses for an env: the user's functions win over the registered task's.
 
@@ -106,11 +106,8 @@ def resolve_task(
     :param reward_fn: the user's reward function, or None
     :param termination_fn: the user's termination function, or None
     :param learned_reward: the model learns the reward; None: only when no reward function is known
-    :param hooks_release: the release whose task hooks the model was trained with (a loaded zip's); None: this one's
-    :return: the planner's reward function (None when the reward is learned), its termination function, the
-        task's observation handling for the networks (:meth:`TaskSpec.model_hooks`: ``model_input_exclude``, the
-        model's ``obs_preproc`` / ``targ_proc`` / ``obs_postproc`` and the policy's inputs), and whether the
-        reward is learned
+    :return: the planner's reward function (None when the reward is learned), its termination function, and whether
+        the reward is learned
     """
     task = make_task(task_id) if task_id is not None and has_task(task_id) else None
     reward_fn = reward_fn or (task.reward_fn if task else None)
@@ -124,13 +121,13 @@ def resolve_task(
             "sb3_poplin.tasks.register_task) if this env can terminate.",
             stacklevel=4,
         )
-    no_hooks: dict[str, Any] = dict(
-        model_input_exclude=[],
-        obs_preproc=None,
-        targ_proc=None,
-        obs_postproc=None,
-        policy_input_exclude=[],
-        policy_obs_preproc=None,
-    )
-    hooks = task.model_hooks(hooks_release) if task else no_hooks
-    return (None if learned_reward else reward_fn), termination_fn, hooks, learned_reward
+    return (None if learned_reward else reward_fn), termination_fn, learned_reward
+
+
+def task_hooks(task_id: str | None) -> ModelHooks:
+    """
+    :param task_id: the env's gymnasium id (None when unknown)
+    :return: the registered task's hooks (:attr:`TaskSpec.hooks`); no hooks (raw observations, delta targets) for an
+        env without a task
+    """
+    return make_task(task_id).hooks if task_id is not None and has_task(task_id) else ModelHooks()

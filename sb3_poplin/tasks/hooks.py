@@ -1,9 +1,14 @@
 """
-Model hooks for locomotion observations, built from four choices instead of written per task.
+How the networks see observations: :class:`ModelHooks`, the record an agent is built from and saved with, and
+:class:`LocomotionHooks`, which makes the hooks of a locomotion task from four choices instead of written per task.
+
+A :class:`ModelHooks` is part of an agent's state, like its network sizes: ``POPLIN(model_hooks=...)`` takes one (by
+default the task's, :attr:`sb3_poplin.tasks.TaskSpec.hooks`), the zip keeps it, and a loaded agent's networks are
+built from the one it saved, whatever the task's hooks are now.
 
 The raw layout of the v5 locomotion tasks (made with the root position kept) is ``[root position(s), root height,
-root angle(s), joint angles, velocities]``. What the dynamics model sees and learns can differ from it in three
-ways, each a field of :class:`LocomotionHooks`:
+root angle(s), joint angles, velocities]``. What the dynamics model sees and learns can differ from it in four ways,
+each a field of :class:`LocomotionHooks`:
 
 - ``exclude``: the root positions are not inputs (the dynamics do not depend on where the body is); their change
   is still predicted, since the forward reward needs it;
@@ -20,11 +25,96 @@ not closures, so that an agent that uses them pickles.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields
 from functools import cached_property
+from types import MethodType
 from typing import Any
 
 import torch as th
+
+ObsPreproc = Callable[[th.Tensor], th.Tensor]
+TargProc = Callable[[th.Tensor, th.Tensor], th.Tensor]
+ObsPostproc = Callable[[th.Tensor, th.Tensor], th.Tensor]
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equal hooks: a method of a hooks record equals the same method of an equal record (also once unpickled)."""
+    if isinstance(a, MethodType) and isinstance(b, MethodType):
+        return a.__func__ is b.__func__ and a.__self__ == b.__self__
+    return a == b
+
+
+@dataclass(frozen=True, eq=False)
+class ModelHooks:
+    """
+    The observation handling of an agent's networks (PETS's hooks, plus the policy network's inputs).
+
+    :param model_input_exclude: observation indices the dynamics model does not take as inputs (it still predicts
+        their change); not with ``obs_preproc``
+    :param obs_preproc: the model's input features from raw observations, ``obs [..., o] -> features [..., f]``;
+        ``None``: the observation without ``model_input_exclude``
+    :param targ_proc: the model's target, ``(obs, next_obs) -> target``; ``None``: ``next_obs - obs``
+    :param obs_postproc: its inverse, ``(obs, prediction) -> next_obs``; ``None``: ``obs + prediction``
+    :param policy_input_exclude: observation indices the policy network does not see; ``None`` (resolved on
+        creation): ``model_input_exclude``
+    :param policy_obs_preproc: the policy network's input features from raw observations; ``None``: the
+        observation without ``policy_input_exclude`` (not with a non-empty one)
+    """
+
+    model_input_exclude: tuple[int, ...] = ()
+    obs_preproc: ObsPreproc | None = None
+    targ_proc: TargProc | None = None
+    obs_postproc: ObsPostproc | None = None
+    policy_input_exclude: tuple[int, ...] | None = None
+    policy_obs_preproc: ObsPreproc | None = None
+
+    def __post_init__(self) -> None:
+        from sb3_poplin.dynamics import check_model_hooks  # the model's rule; dynamics imports nothing of tasks
+
+        object.__setattr__(self, "model_input_exclude", tuple(int(i) for i in self.model_input_exclude))
+        policy_exclude = self.model_input_exclude if self.policy_input_exclude is None else self.policy_input_exclude
+        object.__setattr__(self, "policy_input_exclude", tuple(int(i) for i in policy_exclude))  # resolved: None goes
+        check_model_hooks(self.model_input_exclude, self.obs_preproc, self.targ_proc, self.obs_postproc, owner="ModelHooks: ")
+        if self.policy_obs_preproc is not None and self.policy_exclude:
+            raise ValueError(
+                "ModelHooks: the policy takes either policy_input_exclude (by default model_input_exclude) or "
+                "policy_obs_preproc, not both: pass policy_input_exclude=() and drop the indices inside the preproc."
+            )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, ModelHooks):
+            return NotImplemented
+        return all(_same(getattr(self, f.name), getattr(other, f.name)) for f in fields(self))
+
+    def __hash__(self) -> int:
+        return hash((self.model_input_exclude, self.policy_input_exclude))
+
+    @property
+    def policy_exclude(self) -> tuple[int, ...]:
+        """The indices the policy network does not see (``policy_input_exclude``, resolved)."""
+        assert self.policy_input_exclude is not None
+        return self.policy_input_exclude
+
+    def network_kwargs(self) -> dict[str, Any]:
+        """:return: the keyword arguments of :class:`sb3_poplin.policies.POPLINPolicy` these hooks set"""
+        return dict(
+            model_input_exclude=list(self.model_input_exclude),
+            obs_preproc=self.obs_preproc,
+            targ_proc=self.targ_proc,
+            obs_postproc=self.obs_postproc,
+            policy_input_exclude=list(self.policy_exclude),
+            policy_obs_preproc=self.policy_obs_preproc,
+        )
+
+    @classmethod
+    def from_network_kwargs(cls, kwargs: Mapping[str, Any]) -> ModelHooks:
+        """
+        :param kwargs: a policy's keyword arguments (those :meth:`network_kwargs` gives; others are ignored, a
+            missing one takes its default)
+        :return: the hooks they set
+        """
+        return cls(**{f.name: kwargs[f.name] for f in fields(cls) if f.name in kwargs})
 
 
 def _runs(indices: list[int]) -> tuple[tuple[int, int], ...]:
@@ -149,9 +239,18 @@ class LocomotionHooks:
         )
         return obs + delta
 
+    def hooks(self, policy: bool = False) -> ModelHooks:
+        """
+        These hooks as an agent's record (``POPLIN(model_hooks=...)``).
+
+        :param policy: the policy network sees the model's input features too; else the raw observation without
+            ``exclude``
+        """
+        return ModelHooks(**self.model_hooks(policy))
+
     def model_hooks(self, policy: bool = False) -> dict[str, Any]:
         """
-        The ``TaskSpec`` keyword arguments of these hooks.
+        The ``TaskSpec`` keyword arguments of these hooks (see :meth:`hooks`).
 
         :param policy: the policy network sees the model's input features too; else the raw observation without
             ``exclude``

@@ -10,7 +10,6 @@ and the policy do not see those positions as inputs (``model_input_exclude``).
 
 from __future__ import annotations
 
-from typing import Any
 
 import torch as th
 
@@ -277,26 +276,10 @@ HOOK_CANDIDATES["Swimmer-v5"] = _candidates(
 HOOK_CANDIDATES["Ant-v5"] = _candidates(107, (ANT_X, ANT_Y), ANT_DT, velocities=tuple(range(15, ANT_STATE_END)))
 
 
-def _raw_hooks(positions: tuple[int, ...]) -> dict[str, Any]:
-    """The hooks of the locomotion tasks before 0.4.0 ("raw"): root positions hidden from both networks, deltas."""
-    return dict(
-        model_input_exclude=positions,
-        obs_preproc=None,
-        targ_proc=None,
-        obs_postproc=None,
-        policy_input_exclude=positions,
-        policy_obs_preproc=None,
-    )
-
-
-# HalfCheetah-v5's hooks, chosen by the held-out predicted-return error on recorded PETS and POPLIN-P data
-# (benchmarks/RESULTS.md, "Model hooks of HalfCheetah-v5"); the policy network sees the same features since 0.4.1,
-# chosen by the 4-seed learning check (RESULTS.md, "The learning check with the 0.4.0 hooks")
+# HalfCheetah-v5: the pitch as sine and cosine, to the model and the policy (a flipped cheetah is one posture);
+# Swimmer-v5: the body angle as sine and cosine to the model only. How they were chosen: docs/results.md
 HALF_CHEETAH_HOOKS = "sincos"
 HALF_CHEETAH_POLICY_FEATURES = True
-# Swimmer-v5's model hooks since 0.4.2: the body angle as its sine and cosine (x, y hidden, deltas), chosen by the
-# held-out return error (RESULTS.md, "Swimmer-v5's hooks, and a Walker2d-v5 dataset") and PETS's 4-seed learning check
-# (RESULTS.md, "Swimmer-v5's learning check"); the policy network keeps the raw observation without x, y (unmeasured)
 SWIMMER_HOOKS = "sincos"
 
 
@@ -312,10 +295,6 @@ for _spec in (
         reward_fn=half_cheetah_reward,
         env_kwargs=dict(KEEP_POSITIONS),
         **HOOK_CANDIDATES["HalfCheetah-v5"][HALF_CHEETAH_HOOKS].model_hooks(policy=HALF_CHEETAH_POLICY_FEATURES),
-        earlier_hooks=(
-            ("0.4.0", _raw_hooks((HALF_CHEETAH_X,))),
-            ("0.4.1", HOOK_CANDIDATES["HalfCheetah-v5"][HALF_CHEETAH_HOOKS].model_hooks(policy=False)),
-        ),
         description="x kept in obs[0] for the forward reward, hidden from the networks; the pitch as its sine and "
         "cosine to the model and the policy; never terminates",
     ),
@@ -340,7 +319,6 @@ for _spec in (
         reward_fn=swimmer_reward,
         env_kwargs=dict(KEEP_POSITIONS),
         **HOOK_CANDIDATES["Swimmer-v5"][SWIMMER_HOOKS].model_hooks(policy=False),
-        earlier_hooks=(("0.4.2", _raw_hooks((SWIMMER_X, SWIMMER_Y))),),
         description="x, y kept in obs[0:2], hidden from the networks; the body angle as its sine and cosine to the "
         "model; never terminates",
     ),

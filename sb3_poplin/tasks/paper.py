@@ -123,8 +123,6 @@ for _spec in (
         obs_preproc=pets_cheetah_obs_preproc,
         targ_proc=pets_cheetah_targ_proc,
         obs_postproc=pets_cheetah_obs_postproc,
-        # releases before 0.3.0 fed the raw observation and predicted every entry as a delta
-        earlier_hooks=(("0.3.0", dict(obs_preproc=None, targ_proc=None, obs_postproc=None)),),
         description="obs[0] is the forward velocity (x not observed); never terminates; PETS's model hooks",
     ),
     TaskSpec(

@@ -12,6 +12,8 @@ directory, comes first on ``sys.path``, so the checkout on ``PYTHONPATH`` is imp
     PYTHONPATH=/tmp/sb3p040 python tests/data/make_legacy_0_3_0_zips.py tests/data 0.4.0
     # Swimmer-v5 with 0.4.1's raw hooks (its hooks changed after 0.4.1): commit 09283f1
     PYTHONPATH=/tmp/sb3p041 python tests/data/make_legacy_0_3_0_zips.py tests/data 0.4.1 Swimmer-v5
+    # PETSCheetah with 0.4.2 (the code of the issue-45 headline runs, the last release without a hooks record): 6f0e1cf
+    PYTHONPATH=/tmp/sb3p042 python tests/data/make_legacy_0_3_0_zips.py tests/data 0.4.2 sb3_poplin/PETSCheetah-v0
 
 It writes ``legacy-<release>-<variant>-<task>.zip`` (task: ``half-cheetah``, ``swimmer``) for PETS and POPLIN-P
 (tiny agents: one random episode, one model fit and distillation, a few planned steps; under 100 KB each) and
@@ -31,7 +33,7 @@ import sb3_poplin
 from sb3_poplin import POPLIN
 from sb3_poplin.tasks import make_env
 
-TASK_NAMES = {"HalfCheetah-v5": "half-cheetah", "Swimmer-v5": "swimmer"}
+TASK_NAMES = {"HalfCheetah-v5": "half-cheetah", "Swimmer-v5": "swimmer", "sb3_poplin/PETSCheetah-v0": "cheetah"}
 TINY = dict(horizon=4, population_size=16, num_elites=4, cem_iterations=2, ensemble_size=2, dynamics_net_arch=(16, 16))
 
 
