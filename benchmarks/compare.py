@@ -7,7 +7,7 @@ as written: it passes its arguments to that command, unchanged.
 
 import sys
 
-from sb3_poplin.compare import main
+from sb3_poplin.experiments.compare import main
 
 if __name__ == "__main__":
     sys.exit(main())

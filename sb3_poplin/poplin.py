@@ -17,7 +17,6 @@ period with MPC.
 from __future__ import annotations
 
 import hashlib
-import inspect
 import io
 import math
 import pathlib
@@ -660,8 +659,4 @@ class POPLIN(OffPolicyAlgorithm):
 # attributes whose state a zip holds beside the parameters (POPLIN.planner_state_dict)
 PLANNER_STATE = ("mpc", "distiller")
 # the constructor's defaults of the settings: what a setting missing from a loaded zip starts from
-DEFAULT_SETTINGS: dict[str, Any] = {
-    key: parameter.default
-    for key, parameter in inspect.signature(POPLIN.__init__).parameters.items()
-    if key in variants.SETTINGS
-}
+DEFAULT_SETTINGS = variants.DEFAULT_SETTINGS

@@ -9,7 +9,7 @@ A variant is only a search space (:mod:`sb3_poplin.planning`) plus defaults: no 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -39,51 +39,60 @@ GAN_DISCRIMINATOR_NET_ARCH = (64, 64)
 SearchSpaceFactory = Callable[["Settings", int, "PolicyNetwork | None"], SearchSpace]
 
 
+def setting(group: str, default: Any) -> Any:
+    """
+    A field of :class:`Settings`: what :data:`SETTINGS`, :data:`PLANNER_SETTINGS` and :data:`DEFAULT_SETTINGS` are
+    made from.
+
+    :param group: ``"planner"``, ``"policy"`` (the policy network and its distillation) or ``"model"``
+    :param default: ``POPLIN``'s default, as given (``None`` and ``"auto"`` resolve per variant)
+    """
+    return field(metadata={"group": group, "default": default})
+
+
 @dataclass(frozen=True)
 class Settings:
     """
     A POPLIN agent's settings, resolved (:func:`resolve_settings`: validated, every ``None`` default of the variant
     filled in): what the planner (:func:`build_planner`), the networks, the model fit and the distillation are built
-    from. The meaning of each is in :class:`sb3_poplin.POPLIN`'s docstring.
+    from. The one list of them: a new setting is a field here (with its group and ``POPLIN``'s default), a keyword of
+    ``POPLIN`` (its docstring says what it means) and the code that reads it; a zip holds each under its own name.
     """
 
-    # the planner
-    horizon: int
-    population_size: int
-    num_elites: int
-    cem_iterations: int
-    cem_alpha: float
-    init_var: float
-    cem_sampling: str
-    optimizer: str
-    optimizer_kwargs: dict[str, Any]
-    proposal: str
-    noise: str
-    propagation: str
-    num_particles: int
-    planning_dtype: str
-    max_batch_rows: int | None
-    # the policy network and its distillation
-    distillation: str | None
-    distill_imagined: bool
-    distill_window: int | None
-    avg_update: str
-    avg_step_size: float
-    distill_target: str
-    whitening: str
-    policy_net_arch: list[int] | None
-    policy_learning_rate: float
-    policy_epochs: int
-    policy_batch_size: int
-    # the dynamics model and its fit
-    ensemble_size: int
-    dynamics_net_arch: list[int]
-    model_epochs: int
-    model_batch_size: int
-    model_learning_rate: float
-    holdout_ratio: float
-    standardise_targets: bool
-    learned_reward: bool | None  # None until the task is known (POPLIN resolves it when it builds the model)
+    horizon: int = setting("planner", 30)
+    population_size: int = setting("planner", 500)
+    num_elites: int = setting("planner", 50)
+    cem_iterations: int = setting("planner", 5)
+    cem_alpha: float = setting("planner", 0.1)
+    init_var: float = setting("planner", None)
+    cem_sampling: str = setting("planner", "truncated")
+    optimizer: str = setting("planner", None)
+    optimizer_kwargs: dict[str, Any] = setting("planner", None)
+    proposal: str = setting("planner", "init")
+    noise: str = setting("planner", "sep")
+    propagation: str = setting("planner", "expectation")
+    num_particles: int = setting("planner", 20)
+    planning_dtype: str = setting("planner", "float32")
+    max_batch_rows: int | None = setting("planner", 65536)
+    distillation: str | None = setting("policy", None)
+    distill_imagined: bool = setting("policy", None)
+    distill_window: int | None = setting("policy", "auto")
+    avg_update: str = setting("policy", "overwrite")
+    avg_step_size: float = setting("policy", 0.1)
+    distill_target: str = setting("policy", None)
+    whitening: str = setting("policy", "function")
+    policy_net_arch: list[int] | None = setting("policy", None)
+    policy_learning_rate: float = setting("policy", 3e-3)
+    policy_epochs: int = setting("policy", None)
+    policy_batch_size: int = setting("policy", 64)
+    ensemble_size: int = setting("model", 5)
+    dynamics_net_arch: list[int] = setting("model", (200, 200, 200, 200))
+    model_epochs: int = setting("model", 5)
+    model_batch_size: int = setting("model", 32)
+    model_learning_rate: float = setting("model", 1e-3)
+    holdout_ratio: float = setting("model", 0.0)
+    standardise_targets: bool = setting("model", False)
+    learned_reward: bool | None = setting("model", None)  # None until the task is known (POPLIN resolves it)
 
     @property
     def cem_options(self) -> CEMOptions:
@@ -421,50 +430,17 @@ def build_planner(
     )
 
 
-# every setting a planner reads
-PLANNER_SETTINGS = (
-    "horizon",
-    "population_size",
-    "num_elites",
-    "cem_iterations",
-    "cem_alpha",
-    "init_var",
-    "cem_sampling",
-    "optimizer",
-    "optimizer_kwargs",
-    "proposal",
-    "noise",
-    "propagation",
-    "num_particles",
-    "planning_dtype",
-    "max_batch_rows",
+# POPLIN's settings that resolve_settings checks and resolves (its other arguments go to SB3 or the task), the ones a
+# planner reads, their defaults as POPLIN takes them, and those whose values are strings (the zoo's -params takes them
+# bare): all from Settings' fields
+SETTINGS = tuple(f.name for f in fields(Settings))
+PLANNER_SETTINGS = tuple(f.name for f in fields(Settings) if f.metadata["group"] == "planner")
+DEFAULT_SETTINGS: dict[str, Any] = {f.name: f.metadata["default"] for f in fields(Settings)}
+STRING_SETTINGS = tuple(
+    f.name
+    for f in fields(Settings)
+    if "str" in (part.strip() for part in str(f.type).split("|")) or isinstance(DEFAULT_SETTINGS[f.name], str)
 )
-
-
-# POPLIN's settings that resolve_settings checks and resolves (its other arguments go to SB3 or the task)
-SETTINGS = (
-    *PLANNER_SETTINGS,
-    "distillation",
-    "distill_imagined",
-    "distill_window",
-    "avg_update",
-    "avg_step_size",
-    "distill_target",
-    "whitening",
-    "policy_net_arch",
-    "policy_learning_rate",
-    "policy_epochs",
-    "policy_batch_size",
-    "ensemble_size",
-    "dynamics_net_arch",
-    "model_epochs",
-    "model_batch_size",
-    "model_learning_rate",
-    "holdout_ratio",
-    "standardise_targets",
-    "learned_reward",
-)
-assert SETTINGS == tuple(field.name for field in fields(Settings)), "SETTINGS and Settings must name the same fields"
 
 
 def replanner(agent: Any, name: str, seed: int | None = 0, **overrides: Any) -> MPCController:

@@ -9,7 +9,7 @@ import torch as th
 from conftest import TINY, load_benchmark, pendulum_reward
 
 from sb3_poplin import POPLIN
-from sb3_poplin.analysis.__main__ import main
+from sb3_poplin.experiments.analysis import main
 from sb3_poplin.analysis.model_error import Episode, model_error
 from sb3_poplin.analysis.popsize import population_sweep
 from sb3_poplin.analysis.surface import PCA2, grid_returns, record_search, roughness

@@ -22,8 +22,8 @@ import pytest
 import torch as th
 import yaml
 
-from sb3_poplin import compare as compare_module
-from sb3_poplin import resume
+from sb3_poplin.experiments import compare as compare_module
+from sb3_poplin.experiments import checkpoints as resume
 from test_zoo import TINY_POPLIN, run
 
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from sb3_poplin import POPLIN
-from sb3_poplin.demo import CPU_SETTINGS, SIZE_KEYS, cpu_config, main, random_policy_returns, warmup_episodes
-from sb3_poplin.presets import ZOO_KEYS
-from sb3_poplin.presets import config_path, load_config
+from sb3_poplin.experiments.demo import CPU_SETTINGS, SIZE_KEYS, cpu_config, main, random_policy_returns, warmup_episodes
+from sb3_poplin.experiments.presets import ZOO_KEYS
+from sb3_poplin.experiments.presets import config_path, load_config
 
 # a planner small enough for two episodes and three evaluation episodes in a few seconds
 TINY = ["horizon:3", "population_size:16", "num_elites:4", "cem_iterations:1", "ensemble_size:2", "dynamics_net_arch:[16]"]

@@ -7,7 +7,7 @@ import torch as th
 from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_poplin import POPLIN
-from sb3_poplin.demo import CPU_SETTINGS, random_policy_returns
+from sb3_poplin.experiments.demo import CPU_SETTINGS, random_policy_returns
 
 RANDOM_PENDULUM = -1200  # uniform random actions score about -1200 per 200-step episode
 

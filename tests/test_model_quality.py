@@ -9,7 +9,7 @@ import pytest
 import torch as th
 from conftest import TINY, pendulum_reward, tiny
 
-from sb3_poplin.analysis.__main__ import main as analysis_main
+from sb3_poplin.experiments.analysis import main as analysis_main
 from sb3_poplin.analysis.model_quality import (
     EnsembleUnderTest,
     TransitionDataset,
@@ -169,7 +169,7 @@ def test_terminations_are_recorded_and_time_limits_are_not():
 
 
 def test_a_checkpoint_replay_buffer_gives_the_same_dataset(tmp_path):
-    from sb3_poplin.resume import replay_buffer_arrays
+    from sb3_poplin.experiments.checkpoints import replay_buffer_arrays
 
     agent = tiny(buffer_size=1000)
     agent.learn(400)

@@ -31,7 +31,8 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from conftest import TINY
 
-from sb3_poplin import POPLIN, resume
+from sb3_poplin import POPLIN
+from sb3_poplin.experiments import checkpoints as resume
 from sb3_poplin.callbacks import ControlModesEvalCallback
 from sb3_poplin.policies import PolicyNetwork
 

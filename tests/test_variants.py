@@ -506,3 +506,19 @@ def test_recorded_distillation_targets_carry_no_graph():
     model._sample_action(learning_starts=0)  # a training rollout's step: planned and recorded
     for key, value in model.distiller.planned[-1].items():
         assert not value.requires_grad and value.grad_fn is None, key
+
+
+def test_the_settings_have_one_source() -> None:
+    """Settings' fields give the setting lists and the defaults; POPLIN's signature states the same defaults."""
+    import inspect
+    from dataclasses import fields
+
+    from sb3_poplin import POPLIN, variants
+
+    signature = inspect.signature(POPLIN.__init__).parameters
+    assert variants.SETTINGS == tuple(f.name for f in fields(variants.Settings))
+    assert {name: signature[name].default for name in variants.SETTINGS} == variants.DEFAULT_SETTINGS
+    assert set(variants.PLANNER_SETTINGS) < set(variants.SETTINGS) and "horizon" in variants.PLANNER_SETTINGS
+    assert "model_epochs" not in variants.PLANNER_SETTINGS and "distill_window" in variants.STRING_SETTINGS
+    assert "optimizer_kwargs" not in variants.STRING_SETTINGS and "horizon" not in variants.STRING_SETTINGS
+    assert variants.resolve_settings("pets", variants.DEFAULT_SETTINGS).horizon == 30

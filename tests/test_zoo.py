@@ -16,7 +16,7 @@ import optuna
 import pytest
 import yaml
 
-from sb3_poplin import presets, zoo
+from sb3_poplin.experiments import presets, zoo
 from sb3_poplin.tasks import env_util
 from sb3_poplin.envs import ENV_IDS
 from sb3_poplin.poplin import POPLIN

@@ -20,7 +20,7 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_poplin import POPLIN
-from sb3_poplin.presets import poplin_settings
+from sb3_poplin.experiments.presets import poplin_settings
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from results_file import append_row, describe_machine

@@ -40,7 +40,7 @@ import mbrl.util.common
 import mbrl.util.replay_buffer
 from mbrl.env.pets_halfcheetah import HalfCheetahEnv
 
-from sb3_poplin.analysis.__main__ import markdown_table
+from sb3_poplin.experiments.analysis import markdown_table
 from sb3_poplin.analysis.model_quality import TransitionDataset, evaluate, fit_after_every_episode
 from sb3_poplin.tasks import make_task
 

@@ -14,7 +14,7 @@ import time
 import torch as th
 
 from sb3_poplin import POPLIN
-from sb3_poplin.presets import load_config, config_path, poplin_settings
+from sb3_poplin.experiments.presets import load_config, config_path, poplin_settings
 from sb3_poplin.tasks import make_env
 
 

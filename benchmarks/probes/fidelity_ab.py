@@ -36,7 +36,6 @@ Protocol per run: ``learn(steps)`` from seed k; the training episodes' returns; 
 from __future__ import annotations
 
 import argparse
-import inspect
 import datetime
 import json
 import multiprocessing
@@ -51,8 +50,8 @@ from typing import Any
 import numpy as np
 
 from sb3_poplin import POPLIN
-from sb3_poplin.saving import SETTINGS_BEFORE_0_3
-from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, configuration, original_code_settings
+from sb3_poplin.compat import SETTINGS_BEFORE_0_3
+from sb3_poplin.variants import DEFAULT_SETTINGS, ORIGINAL_CODE_SETTINGS, configuration, original_code_settings
 
 # benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -81,8 +80,7 @@ V0_3: dict[str, Any] = dict(
     avg_step_size=0.1,
     distill_window=10_000,
 )
-_SIGNATURE = inspect.signature(POPLIN.__init__).parameters
-DEFAULTS: dict[str, Any] = {key: _SIGNATURE[key].default for key in V0_2}
+DEFAULTS: dict[str, Any] = {key: DEFAULT_SETTINGS[key] for key in V0_2}
 ARMS: dict[str, dict[str, Any]] = {
     "v0.2": {},
     "v0.3": V0_3,
@@ -181,7 +179,7 @@ def run_one(
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     from sb3_poplin import kernels
-    from sb3_poplin.presets import poplin_settings
+    from sb3_poplin.experiments.presets import poplin_settings
     from sb3_poplin.tasks import make_env
 
     th.set_num_threads(1)

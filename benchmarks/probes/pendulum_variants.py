@@ -19,7 +19,7 @@ import torch as th
 from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_poplin import POPLIN
-from sb3_poplin.presets import poplin_settings
+from sb3_poplin.experiments.presets import poplin_settings
 from sb3_poplin.variants import NAMED_CONFIGURATIONS, configuration
 
 # benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives

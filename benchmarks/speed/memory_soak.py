@@ -17,7 +17,7 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_poplin import POPLIN
-from sb3_poplin.presets import poplin_settings
+from sb3_poplin.experiments.presets import poplin_settings
 
 # benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))

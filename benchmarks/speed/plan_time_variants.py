@@ -27,7 +27,7 @@ import warnings
 import torch as th
 
 from sb3_poplin import POPLIN, kernels
-from sb3_poplin.presets import poplin_settings
+from sb3_poplin.experiments.presets import poplin_settings
 from sb3_poplin.variants import configuration
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # speed/: planning_speed

@@ -241,7 +241,7 @@ def plan_breakdown_part(rounds: int) -> str:
 
     from sb3_poplin import POPLIN, planning, sampling
     from sb3_poplin.dynamics import ProbabilisticEnsemble as Ensemble
-    from sb3_poplin.presets import poplin_settings
+    from sb3_poplin.experiments.presets import poplin_settings
 
     cells = []
     for setting, (env_id, planner) in PLAN_SETTINGS.items():

@@ -21,7 +21,7 @@ from typing import Any
 import torch as th
 
 from sb3_poplin import POPLIN
-from sb3_poplin.presets import poplin_settings
+from sb3_poplin.experiments.presets import poplin_settings
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # speed/: planning_speed
 # benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives

@@ -140,7 +140,8 @@ def dataset_from_replay(
     """
     The transitions of a replay buffer's arrays (one env, never wrapped around), cut at the last finished episode.
 
-    :param arrays: ``sb3_poplin.resume.replay_buffer_arrays`` of the buffer (a checkpoint's ``replay_buffer.npz``)
+    :param arrays: ``sb3_poplin.experiments.checkpoints.replay_buffer_arrays`` of the buffer (a checkpoint's
+        ``replay_buffer.npz``)
     :param unscale: the agent's ``policy.unscale_action`` (the buffer holds actions in [-1, 1])
     :param env_id: the task
     :param meta: recorded with the data
@@ -175,14 +176,15 @@ def dataset_from_agent(agent: Any, meta: dict[str, Any] | None = None) -> Transi
     :param agent: a ``POPLIN`` agent after ``learn``, one env, ``buffer_size`` at least the steps trained
     :param meta: recorded with the data
     """
-    from sb3_poplin.resume import replay_buffer_arrays
+    from sb3_poplin.experiments.checkpoints import replay_buffer_arrays
 
     return dataset_from_replay(replay_buffer_arrays(agent.replay_buffer), agent.policy.unscale_action, agent.task_id, meta)
 
 
 def record(env_id: str, variant: str, steps: int, seed: int, budget: str = "cpu", **overrides: Any) -> TransitionDataset:
     """
-    Train a POPLIN agent with a packaged preset (:func:`sb3_poplin.presets.poplin_settings`) and keep its transitions.
+    Train a POPLIN agent with a packaged preset (:func:`sb3_poplin.experiments.presets.poplin_settings`) and keep its
+    transitions.
 
     :param env_id: a task with an entry in the preset's file
     :param variant: ``"pets"``, ``"poplin-p"``, ...
@@ -192,7 +194,7 @@ def record(env_id: str, variant: str, steps: int, seed: int, budget: str = "cpu"
     :param overrides: settings that replace the file's
     """
     from sb3_poplin import POPLIN, __version__
-    from sb3_poplin.presets import config_path, load_config, poplin_settings
+    from sb3_poplin.experiments.presets import config_path, load_config, poplin_settings
     from sb3_poplin.tasks import make_env
 
     path = config_path("poplin", budget)
@@ -403,7 +405,7 @@ def model_quality(
     :param evaluate_kwargs: passed to :func:`evaluate` (``ks``, ``return_horizons``, ``stride``)
     :return: :func:`evaluate`'s report with ``fit_seconds``
     """
-    from sb3_poplin.presets import poplin_settings
+    from sb3_poplin.experiments.presets import poplin_settings
 
     stop = data.num_episodes if heldout_episodes is None else train_episodes + heldout_episodes
     train, heldout = data.episodes(0, train_episodes), data.episodes(train_episodes, stop)
