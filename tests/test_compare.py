@@ -183,7 +183,7 @@ def test_compare_reports_the_paper_protocol_and_steps_to_reach(tmp_path: Path) -
         found = compare_module.find_run(job)  # complete without a model zip: the marker
         assert found == str(run_dir.relative_to(tmp_path))
         results.append(compare_module.JobResult(job, 0, found, reused=True))
-    table = compare_module.write_report(results, options.envs, "cpu", tmp_path / "report", reference="PETS (MPC)")
+    table = compare_module.write_report(results, options.tasks(), "cpu", tmp_path / "report", reference="PETS (MPC)")
     task = json.loads((tmp_path / "report" / "results.json").read_text())["tasks"][0]
     assert task["matched_step"] == 3000 and task["labels"]["SAC"]["final"] == [-100, -160]
     paper = task["paper_protocol"]
@@ -239,12 +239,12 @@ def test_compare_plans_and_reports_the_paper_suite(tmp_path: Path) -> None:
     common = ["--algos", "poplin", "sac", "--seeds", "0", "-n", "400", "--log-folder", str(tmp_path)]
     options = compare_module.parse_args(["--suite", "paper", *common])
     jobs = compare_module.plan_jobs(options)
-    assert options.envs == [task.env_id for task in PAPER_TASKS.values()]
-    assert [job.env for job in jobs[::2]] == options.envs and {job.algo for job in jobs} == {"poplin", "sac"}
+    assert options.tasks() == [task.env_id for task in PAPER_TASKS.values()] and options.envs is None  # not mutated
+    assert [job.env for job in jobs[::2]] == options.tasks() and {job.algo for job in jobs} == {"poplin", "sac"}
     assert options.paper_names["sb3_poplin/MBBLCartpole-v0"] == "Cartpole"
     # a report of runs that do not exist: every cell is a failure, the columns are the paper's names in its order
     results = [compare_module.JobResult(job, 1) for job in jobs]
-    table = compare_module.write_report(results, options.envs, "cpu", tmp_path / "report", options.paper_names)
+    table = compare_module.write_report(results, options.tasks(), "cpu", tmp_path / "report", options.paper_names)
     lines = table.read_text().splitlines()
     header = next(line for line in lines if line.startswith("| |"))
     assert header == "| | " + " | ".join(PAPER_TASKS) + " |"

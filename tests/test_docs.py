@@ -210,7 +210,7 @@ def run_blocks(path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> i
 
 
 def test_readme_python_blocks_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    assert run_blocks(README, tmp_path, monkeypatch) >= 3
+    assert run_blocks(README, tmp_path, monkeypatch) >= 2  # the callbacks example runs in docs/usage.md
 
 
 def test_runner_catches_a_broken_block(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

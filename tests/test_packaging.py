@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import fnmatch
+import re
 from pathlib import Path
 
 import pytest
@@ -49,3 +50,18 @@ def test_every_data_file_of_the_package_is_in_the_wheel(options: dict) -> None:
     missing = [str(path.relative_to(ROOT)) for path in files if not packaged(path, options["package_data"])]
     assert not missing, f"files the package holds but setup.cfg's package_data leaves out: {missing}"
     assert ROOT / "sb3_poplin/hyperparams/poplin_cpu.yml" in files  # the zoo's default hyperparameter file
+
+
+def test_only_the_runner_parses_command_lines_and_the_algorithm_imports_none_of_it() -> None:
+    """argparse only in sb3_poplin/experiments/; the algorithm's modules import neither the runner nor the analyses."""
+    package = Path(__file__).resolve().parent.parent / "sb3_poplin"
+    tooling = ("experiments", "analysis")
+    aliases = {"zoo.py", "compare.py", "resume.py", "presets.py", "demo.py"}  # python -m entry points, deprecated imports
+    for path in package.rglob("*.py"):
+        relative = path.relative_to(package)
+        source = path.read_text()
+        if relative.parts[0] != "experiments":
+            assert "import argparse" not in source, f"{relative} parses a command line: move it to sb3_poplin/experiments"
+        if relative.parts[0] not in tooling and str(relative) not in aliases:
+            imports = re.findall(r"^\s*(?:from|import) (sb3_poplin\.(?:experiments|analysis)\b\S*)", source, re.MULTILINE)
+            assert not imports, f"{relative} imports {imports}: the algorithm must not depend on the runner"

@@ -29,7 +29,7 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from conftest import TINY
+from conftest import TINY, tiny
 
 from sb3_poplin import POPLIN
 from sb3_poplin.experiments import checkpoints as resume
@@ -510,3 +510,16 @@ def test_a_resumed_run_keeps_the_callbacks_schedule_and_counters(tmp_path):
         expected, found = progress(a), progress(b)
         differing = sorted(key for key in expected.keys() | found.keys() if expected.get(key) != found.get(key))
         assert not differing, f"{type(a).__name__}: {[(key, expected.get(key), found.get(key)) for key in differing]}"
+
+
+def test_checkpoints_refuse_other_releases_of_the_private_state_they_use(tmp_path, monkeypatch):
+    import stable_baselines3
+
+    resume.check_private_state_releases()  # the pinned releases
+    monkeypatch.setattr(stable_baselines3, "__version__", "2.10.0")
+    with pytest.raises(RuntimeError, match=r"private state of stable_baselines3 2\.9\.x.*2\.10\.0 is installed"):
+        resume.save_checkpoint(tmp_path, tiny(), [])
+    monkeypatch.setattr(stable_baselines3, "__version__", "2.9.7")
+    monkeypatch.setattr(gym, "__version__", "1.5.0")
+    with pytest.raises(RuntimeError, match=r"gymnasium 1\.4\.x.*install gymnasium==1\.4\.\*"):
+        resume.restore_checkpoint(tmp_path, POPLIN, None, [])

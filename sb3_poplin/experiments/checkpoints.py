@@ -93,6 +93,29 @@ class ResetRecorder(gym.Wrapper):
         return self.env.reset(seed=seed, options=options)
 
 
+# ------------------------------------------------------------------------------ private state of gymnasium and SB3
+# An exact restore needs state that gymnasium and SB3 keep in private attributes: an env's generator
+# (``gymnasium.Env._np_random``, ``_np_random_seed``) and a DummyVecEnv's pending reset arguments and buffered
+# observations (``_seeds``, ``_options``, ``_save_obs``). Only the functions of this section touch them, and they
+# refuse other releases than those they were written against (setup.cfg pins the same ranges).
+PRIVATE_STATE_RELEASES = {"gymnasium": "1.4", "stable_baselines3": "2.9"}
+
+
+def check_private_state_releases() -> None:
+    """
+    :raises RuntimeError: gymnasium or SB3 is not of the release whose private attributes checkpoints use
+    """
+    import stable_baselines3
+
+    installed = {"gymnasium": gym.__version__, "stable_baselines3": stable_baselines3.__version__}
+    for package, release in PRIVATE_STATE_RELEASES.items():
+        if ".".join(installed[package].split(".")[:2]) != release:
+            raise RuntimeError(
+                f"Checkpoints read private state of {package} {release}.x, but {package} {installed[package]} is "
+                f"installed: install {package}=={release}.* (as setup.cfg pins it), or train without checkpoints."
+            )
+
+
 def generator_state(env: gym.Env) -> dict[str, Any] | None:
     """
     :param env: an unwrapped env
@@ -119,6 +142,23 @@ def set_generator_state(env: gym.Env, saved: dict[str, Any] | None) -> None:
         env._np_random_seed = saved["seed"]  # type: ignore[attr-defined]
 
 
+def pending_reset(inner: DummyVecEnv, index: int) -> dict[str, Any]:
+    """:return: the seed and options a DummyVecEnv passes to env ``index``'s next reset"""
+    return {"seed": inner._seeds[index], "options": copy.deepcopy(inner._options[index])}
+
+
+def set_pending_reset(inner: DummyVecEnv, index: int, seed: int | None, options: dict[str, Any]) -> None:
+    """Set what a DummyVecEnv passes to env ``index``'s next reset."""
+    inner._seeds[index] = seed
+    inner._options[index] = copy.deepcopy(options)
+
+
+def set_buffered_observation(inner: DummyVecEnv, index: int, observation: Any) -> None:
+    """Put ``observation`` in a DummyVecEnv's buffer of env ``index``'s last observation."""
+    inner._save_obs(index, observation)
+
+
+# ------------------------------------------------------------------------------------------------------------------
 def dummy_vec_env(env: VecEnv) -> DummyVecEnv | None:
     """
     :param env: a VecEnv, possibly wrapped
@@ -214,7 +254,7 @@ def vec_env_state(env: VecEnv, replay: bool) -> list[dict[str, Any]]:
         raise ValueError("Checkpoints need a DummyVecEnv without VecNormalize (see unsupported_reason).")
     states = []
     for index, slot in enumerate(inner.envs):
-        state: dict[str, Any] = {"seed": inner._seeds[index], "options": copy.deepcopy(inner._options[index])}
+        state: dict[str, Any] = pending_reset(inner, index)
         if replay:
             if not isinstance(slot, ResetRecorder):
                 raise ValueError("The training env's resets are not recorded: wrap it with record_resets first.")
@@ -253,11 +293,10 @@ def restore_vec_env(env: VecEnv, states: list[dict[str, Any]], last_obs: np.ndar
                     "deterministic under its random generator, so the run cannot continue exactly. Start it again "
                     "(sb3-poplin-zoo compare --force, or train without --resume)."
                 )
-            inner._save_obs(index, observation)
+            set_buffered_observation(inner, index, observation)
         else:
             set_generator_state(slot.unwrapped, state["generator"])
-        inner._seeds[index] = state["seed"]
-        inner._options[index] = copy.deepcopy(state["options"])
+        set_pending_reset(inner, index, state["seed"], state["options"])
         monitor = find_monitor(slot)
         if monitor is not None and "monitor" in state:
             for name, value in state["monitor"].items():
@@ -369,6 +408,7 @@ def save_checkpoint(run_dir: str | pathlib.Path, model: BaseAlgorithm, callbacks
     :param callbacks: the run's callbacks
     :return: the checkpoint's folder
     """
+    check_private_state_releases()
     run_dir = pathlib.Path(run_dir)
     final = run_dir / CHECKPOINT_FOLDER / f"step-{model.num_timesteps}"
     temporary = final.with_name(final.name + ".tmp")
@@ -424,6 +464,7 @@ def restore_checkpoint(
     :param device: torch device
     :return: the agent, ready for ``learn(remaining, reset_num_timesteps=False)``
     """
+    check_private_state_releases()
     folder = pathlib.Path(folder)
     state = th.load(folder / "state.pt", weights_only=False)
     model = model_class.load(folder / "model.zip", env=env, device=device, force_reset=False)

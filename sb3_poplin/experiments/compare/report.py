@@ -1,0 +1,465 @@
+"""
+The comparison's report: evaluation curves and training episodes of the runs, summaries per task and algorithm
+(final and matched-step returns, the paper's protocol, steps to reach the reference), ``results.md``,
+``results.json`` and the learning-curve figures.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from sb3_poplin.experiments.compare.jobs import PAPER_WINDOW, JobResult, env_name
+from sb3_poplin.variants import POLICY_VARIANTS
+
+
+@dataclass
+class Curve:
+    """
+    Evaluation results of one run under one label.
+
+    :param label: row label, e.g. ``"SAC"`` or ``"POPLIN-P (policy)"``
+    :param seed: the run's seed
+    :param timesteps: evaluation steps
+    :param returns: mean evaluation return at each of them
+    """
+
+    label: str
+    seed: int
+    timesteps: np.ndarray
+    returns: np.ndarray
+
+
+def load_curves(result: JobResult) -> list[Curve]:
+    """
+    :param result: a finished job with a run
+    :return: its evaluation curves: one, or two (MPC and policy) for POPLIN-A/P
+    """
+    job = result.job
+    assert result.run_dir is not None
+    run = Path(job.log_folder) / result.run_dir
+    files = {job.algo.upper(): run / "evaluations.npz"}
+    if job.zoo_algo == "poplin":
+        with open(run / env_name(job.env) / "config.yml") as file:
+            config = yaml.load(file, Loader=yaml.UnsafeLoader)  # written by the zoo (an OrderedDict)
+        variant = str(dict(config).get("policy", "poplin")).upper()
+        files = {f"{variant} (MPC)": run / "evaluations.npz"}
+        if variant.lower() in POLICY_VARIANTS:
+            files[f"{variant} (policy)"] = run / "evaluations_policy.npz"
+    curves = []
+    for label, path in files.items():
+        if not path.is_file():
+            continue
+        with np.load(path) as data:
+            timesteps, results = np.asarray(data["timesteps"]), np.asarray(data["results"], dtype=float)
+        if len(timesteps):
+            curves.append(Curve(label, job.seed, timesteps, results.reshape(len(timesteps), -1).mean(axis=1)))
+    return curves
+
+
+@dataclass
+class TrainingEpisodes:
+    """
+    The training episodes of one run (its monitor files), for the paper's protocol.
+
+    :param label: the algorithm's label, e.g. ``"POPLIN-P"`` or ``"SAC"``
+    :param seed: the run's seed
+    :param end_steps: the environment step at which each episode ended
+    :param returns: each episode's return
+    """
+
+    label: str
+    seed: int
+    end_steps: np.ndarray
+    returns: np.ndarray
+
+    def window_mean(self, step: int, window: int) -> float:
+        """
+        :param step: environment step
+        :param window: steps
+        :return: the mean return of the episodes that ended in ``(step - window, step]`` (``nan`` when none did)
+        """
+        inside = (self.end_steps > step - window) & (self.end_steps <= step)
+        return float(self.returns[inside].mean()) if inside.any() else float("nan")
+
+
+def load_training(result: JobResult) -> TrainingEpisodes | None:
+    """
+    :param result: a finished job with a run
+    :return: its training episodes (from ``*.monitor.csv``; several envs merged in the order the episodes ended), or
+        ``None`` when the run has no monitor file
+    """
+    job = result.job
+    assert result.run_dir is not None
+    rows = []
+    for path in sorted((Path(job.log_folder) / result.run_dir).glob("*.monitor.csv")):
+        data = np.loadtxt(path, delimiter=",", skiprows=2, ndmin=2)  # a JSON comment line, then "r,l,t"
+        rows += [tuple(row[:3]) for row in data]
+    if not rows:
+        return None
+    rows.sort(key=lambda row: row[2])
+    returns, lengths, _ = (np.asarray(column, dtype=float) for column in zip(*rows, strict=True))
+    return TrainingEpisodes(job.column.upper(), job.seed, np.cumsum(lengths).astype(int), returns)
+
+
+def first_step_reaching(steps: np.ndarray, values: np.ndarray, target: float) -> int | None:
+    """
+    :param steps: increasing environment steps
+    :param values: a return at each of them (``nan``: not defined yet)
+    :param target: the return to reach
+    :return: the first step whose value is at least ``target`` (``None``: never)
+    """
+    reached = np.flatnonzero(np.nan_to_num(values, nan=-np.inf) >= target)
+    return int(steps[reached[0]]) if len(reached) else None
+
+
+def reach_entry(steps: np.ndarray, per_seed: list[np.ndarray], seeds: list[int], target: float) -> dict[str, Any]:
+    """
+    :param steps: the steps shared by the seeds' curves
+    :param per_seed: each seed's return at those steps
+    :param seeds: the seeds
+    :param target: the return to reach
+    :return: the first step of the mean curve (over seeds) and of each seed's curve that reached ``target``
+    """
+    mean = np.mean(np.stack(per_seed), axis=0)
+    pairs = zip(seeds, per_seed, strict=True)
+    return {
+        "step": first_step_reaching(steps, mean, target),
+        "per_seed": {str(seed): first_step_reaching(steps, values, target) for seed, values in pairs},
+        "last_step": int(steps[-1]),
+    }
+
+
+def value_at(curve: Curve, step: int) -> float:
+    """
+    :param curve: evaluation curve
+    :param step: environment step
+    :return: the curve's return at its last evaluation at or before ``step``
+    """
+    index = int(np.searchsorted(curve.timesteps, step, side="right")) - 1
+    return float(curve.returns[max(index, 0)])
+
+
+def summarize(
+    env: str,
+    curves: list[Curve],
+    failed: dict[str, int],
+    expected: dict[str, int],
+    training: list[TrainingEpisodes] | None = None,
+    budget_step: int | None = None,
+    window: int = PAPER_WINDOW,
+    reference: str | None = None,
+    missing: dict[str, int] | None = None,
+) -> dict[str, Any]:
+    """
+    Final returns of one task at the matched step (the last evaluation step every run reached), by the paper's
+    protocol at the task's smallest budget, and the steps at which each column reached the reference's final return.
+
+    :param env: gymnasium id
+    :param curves: the task's curves
+    :param failed: algorithm -> failed runs
+    :param expected: algorithm -> planned runs
+    :param training: the task's training episodes (one per run)
+    :param budget_step: the step of the paper's protocol (the task's smallest ``n_timesteps``)
+    :param window: the paper's protocol averages the training episodes that ended in the last ``window`` steps
+    :param reference: the column whose final return the others must reach (``None`` or absent: no reach table)
+    :param missing: algorithm -> runs not found and not started (``--report-only``)
+    :return: the summary written to ``results.json``
+    """
+    matched = int(min(curve.timesteps[-1] for curve in curves)) if curves else 0
+    labels: dict[str, dict[str, Any]] = {}
+    for curve in curves:
+        entry = labels.setdefault(curve.label, {"seeds": [], "final": []})
+        entry["seeds"].append(curve.seed)
+        entry["final"].append(value_at(curve, matched))
+    for entry in labels.values():
+        entry["mean"] = float(np.mean(entry["final"]))
+        entry["std"] = float(np.std(entry["final"]))
+    summary: dict[str, Any] = {"env": env, "matched_step": matched, "labels": labels, "failed": failed, "expected": expected}
+    summary["missing"] = dict(missing or {})
+    training = training or []
+    paper: dict[str, dict[str, Any]] = {}
+    if budget_step is not None:
+        for episodes in training:
+            value = episodes.window_mean(budget_step, window)
+            if not np.isnan(value):
+                entry = paper.setdefault(episodes.label, {"seeds": [], "values": []})
+                entry["seeds"].append(episodes.seed)
+                entry["values"].append(value)
+        for entry in paper.values():
+            entry["mean"] = float(np.mean(entry["values"]))
+            entry["std"] = float(np.std(entry["values"]))
+    summary["paper_protocol"] = {"step": budget_step, "window": window, "labels": paper}
+    if reference is None or reference not in labels:
+        return summary
+    reach: dict[str, Any] = {"reference": reference, "target": labels[reference]["mean"], "evaluation": {}}
+    for label in labels:
+        runs = [curve for curve in curves if curve.label == label]
+        length = min(len(curve.timesteps) for curve in runs)
+        values = [curve.returns[:length] for curve in runs]
+        reach["evaluation"][label] = reach_entry(runs[0].timesteps[:length], values, [c.seed for c in runs], reach["target"])
+    paper_reference = paper.get(label_algo(reference).upper())
+    if paper_reference is not None:
+        reach["paper_target"] = paper_reference["mean"]
+        reach["paper_protocol"] = {}
+        for label in dict.fromkeys(episodes.label for episodes in training):
+            trained = [episodes for episodes in training if episodes.label == label]
+            steps = np.unique(np.concatenate([episodes.end_steps for episodes in trained]))
+            values = [np.array([episodes.window_mean(int(step), window) for step in steps]) for episodes in trained]
+            seeds = [episodes.seed for episodes in trained]
+            reach["paper_protocol"][label] = reach_entry(steps, values, seeds, reach["paper_target"])
+    summary["reach"] = reach
+    return summary
+
+
+def format_cell(summary: dict[str, Any], label: str, algo: str) -> str:
+    """
+    :param summary: a task's summary
+    :param label: column label
+    :param algo: the label's algorithm
+    :return: the table cell: mean ± std over seeds, the number of seeds, of failed runs and of missing ones (not run
+        yet: ``--report-only``)
+    """
+    entry = summary["labels"].get(label)
+    absent = {"failed": summary["failed"].get(algo, 0), "missing": summary.get("missing", {}).get(algo, 0)}
+    note = "".join(f", {count} {kind}" for kind, count in absent.items() if count)
+    if entry is None:
+        expected = summary["expected"].get(algo, 0)
+        return ", ".join(f"{kind} ({count}/{expected})" for kind, count in absent.items() if count) or "—"
+    n_seeds = len(entry["final"])
+    if n_seeds == 1:
+        return f"{entry['mean']:.1f} (1 seed{note})"
+    return f"{entry['mean']:.1f} ± {entry['std']:.1f} ({n_seeds} seeds{note})"
+
+
+def label_algo(label: str) -> str:
+    """
+    :param label: column label, e.g. ``"POPLIN-P (MPC)"`` or ``"SAC"``
+    :return: its algorithm (a POPLIN variant for POPLIN's columns), as ``Job.column`` names it
+    """
+    return label.removesuffix(" (MPC)").removesuffix(" (policy)").lower()
+
+
+def table_labels(summaries: list[dict[str, Any]]) -> list[str]:
+    """
+    :param summaries: one per task
+    :return: every algorithm label of the report, in order of appearance (an algorithm whose every run failed too)
+    """
+    labels: list[str] = []
+    for summary in summaries:
+        labels += [label for label in summary["labels"] if label not in labels]
+    for summary in summaries:
+        for algo in [*summary["failed"], *summary.get("missing", {})]:
+            if not any(label_algo(label) == algo for label in labels):
+                labels.append(algo.upper())
+    return labels
+
+
+def _mean_cell(entry: dict[str, Any] | None, key: str) -> str:
+    if entry is None:
+        return "—"
+    n_seeds = len(entry[key])
+    return f"{entry['mean']:.1f} ± {entry['std']:.1f} ({n_seeds} seed{'s' if n_seeds > 1 else ''})"
+
+
+def _reach_cell(entry: dict[str, Any] | None) -> str:
+    if entry is None:
+        return "—"
+    per_seed = ", ".join(f"s{seed}: {'—' if step is None else step}" for seed, step in entry["per_seed"].items())
+    first = f"not by {entry['last_step']}" if entry["step"] is None else str(entry["step"])
+    return f"{first} ({per_seed})"
+
+
+def protocol_lines(summaries: list[dict[str, Any]]) -> list[str]:
+    """
+    :param summaries: one per task
+    :return: the Markdown of the paper-protocol table and (when a reference column ran) the steps-to-reach table
+    """
+    labels: list[str] = []
+    for summary in summaries:
+        labels += [label for label in summary["paper_protocol"]["labels"] if label not in labels]
+    lines: list[str] = []
+    if labels:
+        window = summaries[0]["paper_protocol"]["window"]
+        lines += [
+            "",
+            f"## The paper's protocol: mean return of the training episodes that ended in the last {window} steps",
+            "",
+            "Mean ± std over seeds, at the task's smallest budget (the step column). Training episodes: what each",
+            "algorithm did while learning (POPLIN: MPC), as the paper reports.",
+            "",
+            "| task | step | " + " | ".join(labels) + " |",
+            "|---|---|" + "---|" * len(labels),
+        ]
+        for summary in summaries:
+            paper = summary["paper_protocol"]
+            cells = [_mean_cell(paper["labels"].get(label), "values") for label in labels]
+            lines.append(f"| {summary['env']} | {paper['step']} | " + " | ".join(cells) + " |")
+    reaching = [summary for summary in summaries if "reach" in summary]
+    if reaching:
+        lines += [
+            "",
+            "## Steps to reach the reference's final return",
+            "",
+            "The first step at which the mean curve over seeds reached the reference column's final return (mean over",
+            "seeds at the matched step; by the paper's protocol: its training-episode return), then each seed's",
+            "(— never). Evaluation steps are the evaluation schedule; the paper's protocol checks every episode end.",
+            "",
+            "| task | column | evaluation: target | first step | paper's protocol: target | first step |",
+            "|---|---|---|---|---|---|",
+        ]
+        for summary in reaching:
+            reach = summary["reach"]
+            paper = reach.get("paper_protocol", {})
+            paper_target = f"{reach['paper_target']:.1f}" if "paper_target" in reach else "—"
+            columns = list(reach["evaluation"]) + [label for label in paper if label not in reach["evaluation"]]
+            for label in columns:
+                lines.append(
+                    f"| {summary['env']} | {label} | {reach['target']:.1f} ({reach['reference']}) | "
+                    f"{_reach_cell(reach['evaluation'].get(label))} | {paper_target} | {_reach_cell(paper.get(label))} |"
+                )
+    return lines
+
+
+def write_paper_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> None:
+    """
+    The paper suite's table, laid out as the paper's: one column per task under its paper name, one row per
+    algorithm label, then the tasks' env ids and matched steps.
+
+    :param summaries: one per task (with its paper ``name``)
+    :param budget: ``"cpu"`` or ``"paper"``
+    :param path: the Markdown file to write
+    """
+    labels = table_labels(summaries)
+    lines = [
+        f"# POPLIN vs model-free baselines on the POPLIN paper's tasks ({budget} budget)",
+        "",
+        "Final evaluation return, mean ± std over seeds (each seed: mean over its evaluation episodes), at the",
+        "matched step: the last evaluation step every run of the task reached. MPC: planning with the learned",
+        "model; policy: the distilled policy network alone. Tasks as the paper names them (sb3_poplin.tasks.paper_suite).",
+        "",
+        "| | " + " | ".join(summary["name"] for summary in summaries) + " |",
+        "|---|" + "---|" * len(summaries),
+    ]
+    for label in labels:
+        cells = [format_cell(summary, label, label_algo(label)) for summary in summaries]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines.append("| env id | " + " | ".join(f"`{summary['env']}`" for summary in summaries) + " |")
+    lines.append("| matched step | " + " | ".join(str(summary["matched_step"]) for summary in summaries) + " |")
+    path.write_text("\n".join(lines + protocol_lines(summaries)) + "\n")
+
+
+def write_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> None:
+    """
+    :param summaries: one per task
+    :param budget: ``"cpu"`` or ``"paper"``
+    :param path: the Markdown file to write
+    """
+    labels = table_labels(summaries)
+    lines = [
+        f"# POPLIN vs model-free baselines ({budget} budget)",
+        "",
+        "Final evaluation return, mean ± std over seeds (each seed: mean over its evaluation episodes), at the",
+        "matched step: the last evaluation step every run of the task reached. MPC: planning with the learned",
+        "model; policy: the distilled policy network alone.",
+        "",
+        "| task | matched step | " + " | ".join(labels) + " |",
+        "|---|---|" + "---|" * len(labels),
+    ]
+    for summary in summaries:
+        cells = [format_cell(summary, label, label_algo(label)) for label in labels]
+        lines.append(f"| {summary['env']} | {summary['matched_step']} | " + " | ".join(cells) + " |")
+    path.write_text("\n".join(lines + protocol_lines(summaries)) + "\n")
+
+
+def plot_curves(env: str, curves: list[Curve], budget: str, path: Path) -> None:
+    """
+    Plot one task's learning curves: mean over seeds with a ± std band, one line per label.
+
+    :param env: the task's title: its gymnasium id (and paper name)
+    :param curves: the task's curves
+    :param budget: ``"cpu"`` or ``"paper"``
+    :param path: the PNG file to write
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(6.4, 4.4))
+    for label in dict.fromkeys(curve.label for curve in curves):
+        runs = [curve for curve in curves if curve.label == label]
+        length = min(len(curve.timesteps) for curve in runs)
+        steps = runs[0].timesteps[:length]
+        values = np.stack([curve.returns[:length] for curve in runs])
+        mean, std = values.mean(axis=0), values.std(axis=0)
+        axis.plot(steps, mean, label=f"{label} ({len(runs)} seeds)", linewidth=2)
+        axis.fill_between(steps, mean - std, mean + std, alpha=0.2)
+    axis.set_title(f"{env} ({budget} budget)")
+    axis.set_xlabel("environment steps")
+    axis.set_ylabel("evaluation return (mean ± std over seeds)")
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
+def write_report(
+    results: list[JobResult],
+    envs: list[str],
+    budget: str,
+    output: Path,
+    paper_names: dict[str, str] | None = None,
+    window: int = PAPER_WINDOW,
+    reference: str | None = "POPLIN-P (MPC)",
+) -> Path:
+    """
+    Write ``results.md``, ``results.json`` and one ``curves_<task>.png`` per task.
+
+    :param results: every job's result
+    :param envs: the tasks, in table order
+    :param budget: ``"cpu"`` or ``"paper"``
+    :param output: the report folder
+    :param paper_names: env id -> the paper's task name, for the paper suite's table (``None``: one row per task)
+    :param window: steps of the paper's protocol
+    :param reference: the column whose final return the others must reach
+    :return: the table's path
+    """
+    output.mkdir(parents=True, exist_ok=True)
+    summaries = []
+    for env in envs:
+        env_results = [result for result in results if result.job.env == env]
+        curves = [curve for result in env_results if result.run_dir is not None for curve in load_curves(result)]
+        failed: dict[str, int] = {}
+        missing: dict[str, int] = {}
+        expected: dict[str, int] = {}
+        for result in env_results:
+            expected[result.job.column] = expected.get(result.job.column, 0) + 1
+            if result.run_dir is None:
+                absent = missing if result.missing else failed
+                absent[result.job.column] = absent.get(result.job.column, 0) + 1
+        finished = [result for result in env_results if result.run_dir is not None]
+        training = [episodes for result in finished if (episodes := load_training(result)) is not None]
+        budget_step = min((result.job.n_timesteps for result in env_results), default=None)
+        summary = summarize(env, curves, failed, expected, training, budget_step, window, reference, missing)
+        summary["name"] = (paper_names or {}).get(env, env)
+        summaries.append(summary)
+        if curves:
+            title = env if summary["name"] == env else f"{summary['name']} ({env})"
+            plot_curves(title, curves, budget, output / f"curves_{env_name(env)}.png")
+    table = output / "results.md"
+    if paper_names:
+        write_paper_table(summaries, budget, table)
+    else:
+        write_table(summaries, budget, table)
+    runs = [{**asdict(result.job), "run_dir": result.run_dir, "returncode": result.returncode} for result in results]
+    suite = "paper" if paper_names else "all"
+    report = {"budget": budget, "suite": suite, "reference": reference, "tasks": summaries, "runs": runs}
+    (output / "results.json").write_text(json.dumps(report, indent=2))
+    return table
