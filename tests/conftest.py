@@ -1,11 +1,7 @@
 """Shared test set-up: one torch thread (fastest on these 2-core machines), the tiny agent settings, a factory."""
 
-import importlib.util
 import os
-import sys
 import tempfile
-from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -34,27 +30,6 @@ TINY: dict[str, Any] = dict(
 def tiny(variant: str = "pets", env: Any = "Pendulum-v1", **kwargs: Any) -> POPLIN:
     """A seeded agent with the :data:`TINY` settings (``kwargs`` override them)."""
     return POPLIN(variant, env, seed=0, **{**TINY, **kwargs})
-
-
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
-
-
-def load_benchmark(name: str) -> ModuleType:
-    """
-    Import the benchmark script ``name`` as module ``name`` (registered in ``sys.modules``: dataclasses look it up):
-    ``benchmarks/<name>.py`` (``results_file``, ``compare``) or ``benchmarks/<folder>/<name>.py`` (``speed``,
-    ``diagnosis``, ``probes``; ``benchmarks/README.md`` lists them).
-    """
-    found = [BENCHMARKS / f"{name}.py", *sorted(BENCHMARKS.glob(f"*/{name}.py"))]
-    found = [path for path in found if path.is_file()]
-    assert len(found) == 1, f"benchmark script {name!r}: expected one benchmarks/[<folder>/]{name}.py, found {found}"
-    path = found[0]
-    spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def pendulum_reward(obs: np.ndarray, torque: np.ndarray) -> np.ndarray:

@@ -6,7 +6,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from conftest import TINY, load_benchmark, pendulum_reward
+from conftest import TINY, pendulum_reward
 
 from sb3_poplin import POPLIN
 from sb3_poplin.experiments.analysis import main
@@ -229,98 +229,3 @@ def test_control_curves_from_zoo_runs(tmp_path):
     assert (out / "control.png").exists()
     with pytest.raises(FileNotFoundError, match="No rl-zoo3 run of HalfCheetah-v5"):
         main(["control", "--log-folder", str(tmp_path / "logs"), "--env", "HalfCheetah-v5", "--output", str(out)])
-
-
-def load_diagnose_mpc():
-    return load_benchmark("diagnose_mpc")
-
-
-@pytest.mark.parametrize("env_id", ["sb3_poplin/PETSCheetah-v0", "HalfCheetah-v5"])
-def test_true_simulator_planner_scores_what_the_env_pays(env_id):
-    """diagnose_mpc.py's true-simulator candidates: their returns equal stepping the env with the same actions."""
-    import gymnasium as gym
-    import mujoco
-
-    diagnose = load_diagnose_mpc()
-    kwargs = {} if env_id.startswith("sb3_poplin") else {"exclude_current_positions_from_observation": False}
-    env = gym.make(env_id, **kwargs)
-    model = POPLIN("pets", gym.make(env_id, **kwargs), horizon=4, population_size=6, num_elites=2, seed=0)
-    planner = diagnose.TrueModelPlanner(env, model)
-    env.reset(seed=3)
-    for _ in range(3):  # PETSCheetah: the first observation entry is a velocity from here on
-        env.step(env.action_space.sample())
-    unwrapped = env.unwrapped
-    state = np.empty(mujoco.mj_stateSize(unwrapped.model, planner.spec))
-    mujoco.mj_getState(unwrapped.model, unwrapped.data, state, planner.spec)
-    z = th.rand(1, 6, 4 * 6, generator=th.Generator().manual_seed(0)) * 2.2 - 1.1  # some beyond the bounds
-    scored = planner.evaluate(state, z)[0].numpy()
-    x_before = getattr(unwrapped, "_x_before", None)
-    for i in range(6):
-        mujoco.mj_setState(unwrapped.model, unwrapped.data, state, planner.spec)
-        mujoco.mj_forward(unwrapped.model, unwrapped.data)
-        if x_before is not None:
-            unwrapped._x_before = x_before
-        actions = model.planner.to_env_units(z[0, i].clamp(-1, 1).view(4, 6)).double().numpy()
-        paid = sum(float(unwrapped.step(action)[1]) for action in actions)
-        assert scored[i] == pytest.approx(paid, rel=1e-4, abs=1e-4), i
-
-
-@pytest.mark.parametrize(
-    "env_id, kwargs", [("Hopper-v5", {"exclude_current_positions_from_observation": False}), ("HalfCheetah-v5", {})]
-)
-def test_true_simulator_planner_refuses_envs_whose_observation_it_cannot_rebuild(env_id, kwargs):
-    """Hopper clips its velocities and terminates; HalfCheetah without x is not [qpos, qvel]: both raise, naming the fix."""
-    import gymnasium as gym
-
-    diagnose = load_diagnose_mpc()
-    model = POPLIN("pets", gym.make(env_id, **kwargs), horizon=2, population_size=4, num_elites=2, seed=0)
-    with pytest.raises(ValueError, match=r"observation shape .* is not one of them.*--true-steps 0"):
-        diagnose.TrueModelPlanner(gym.make(env_id, **kwargs), model)
-
-
-def test_true_simulator_planner_takes_another_budget():
-    """--true-budget: the true-simulator CEM plans at the given horizon/population/elites/iterations, not the agent's."""
-    import gymnasium as gym
-
-    diagnose = load_diagnose_mpc()
-    env_id = "sb3_poplin/PETSCheetah-v0"
-    model = POPLIN("pets", gym.make(env_id), horizon=3, population_size=6, num_elites=2, seed=0)
-    planner = diagnose.TrueModelPlanner(gym.make(env_id), model, (5, 8, 3, 2))
-    assert planner.horizon == 5 and planner.space.horizon == 5
-    assert (planner.cem.population_size, planner.cem.num_elites, planner.cem.iterations) == (8, 3, 2)
-    assert planner.mean.shape[-1] == 5 * 6  # the warm-start mean covers the new horizon
-    env = gym.make(env_id)
-    env.reset(seed=1)
-    planner.env = env.unwrapped
-    action = planner.act()
-    assert action.shape == (6,) and np.all(np.abs(action) <= 1.0)
-    with pytest.raises(ValueError, match=r"four positive integers \(horizon, population, elites, iterations\)"):
-        diagnose.TrueModelPlanner(gym.make(env_id), model, (5, 0, 3, 2))
-
-
-def test_cheetah_posture_counts_upside_down_pitches_over_full_turns():
-    """cheetah_posture.py: a pitch beyond ±90° is upside down, also after whole turns (the joint angle accumulates)."""
-    posture = load_benchmark("cheetah_posture")
-    pitches = np.array([0.0, 1.5, 1.7, -3.0, 2 * np.pi + 0.1, 2 * np.pi + 3.0, -4 * np.pi - 2.0, 1.0])
-    assert posture.upside_down_share(pitches) == pytest.approx(4 / 8)  # 1.7, -3.0, 2π+3.0, -4π-2.0
-
-
-@pytest.mark.parametrize(
-    "env_id, kwargs, index",
-    [
-        ("sb3_poplin/PETSCheetah-v0", {}, 2),
-        ("HalfCheetah-v5", {}, 1),
-        ("HalfCheetah-v5", {"exclude_current_positions_from_observation": False}, 2),
-    ],
-)
-def test_cheetah_posture_finds_the_pitch_in_the_observation(env_id, kwargs, index):
-    """The pitch index is derived from the observation layout and equals qpos[2] after a step; no pitch joint raises."""
-    import gymnasium as gym
-
-    posture = load_benchmark("cheetah_posture")
-    env = gym.make(env_id, **kwargs)
-    assert posture.pitch_index(env) == index
-    obs, *_ = env.step(env.action_space.sample())
-    assert obs[index] == env.unwrapped.data.qpos[2]
-    with pytest.raises(ValueError, match="joint 2 is not 'rooty'"):
-        posture.pitch_index(gym.make("Swimmer-v5"))

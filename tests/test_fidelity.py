@@ -5,7 +5,6 @@ agents of earlier releases keeping their behaviour.
 """
 
 import math
-import json
 from pathlib import Path
 
 import gymnasium as gym
@@ -14,7 +13,7 @@ import pytest
 import torch as th
 import torch.nn.functional as F
 
-from conftest import load_benchmark, tiny
+from conftest import tiny
 from sb3_poplin import POPLIN
 from sb3_poplin.distillation import Distiller, average_perturbation, clip_straight_through, gan_distillation
 from sb3_poplin.dynamics import ProbabilisticEnsemble
@@ -22,7 +21,7 @@ from sb3_poplin.planning import PlanResult, PolicyActionNoise, PolicyParameterNo
 from sb3_poplin.policies import Discriminator, POPLINPolicy, PolicyNetwork
 from sb3_poplin.tasks.hooks import LocomotionHooks
 from sb3_poplin.tasks import TaskSpec, make_env, make_task, registered_tasks
-from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, configuration, original_code_settings
+from sb3_poplin.variants import ORIGINAL_CODE_SETTINGS, original_code_settings
 from sb3_poplin.tasks.paper import (
     pets_cheetah_obs_postproc,
     pets_cheetah_obs_preproc,
@@ -483,65 +482,3 @@ def test_hooks_must_come_in_pairs_and_not_with_exclusions():
 
 
 # ---------------------------------------------------------------- the A/B's report
-def test_fidelity_ab_pairs_arms_seed_by_seed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    ab = load_benchmark("fidelity_ab")
-    monkeypatch.setattr(ab, "OUTPUT", tmp_path)
-    # reference v0.3 on seeds 0-2; "original" on seeds 1-3: only seeds 1 and 2 are shared
-    values = {
-        "v0.3": {0: (10.0, -5.0), 1: (20.0, -7.0), 2: (30.0, 1.0)},
-        "original": {1: (25.0, -8.0), 2: (29.0, 4.0), 3: (0, 0)},
-    }
-    for arm, seeds in values.items():
-        for seed, (mpc, policy) in seeds.items():
-            path = ab.run_path("Pendulum-v1", "poplin-p/sep/bc", arm, seed)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            record = dict(task="Pendulum-v1", configuration="poplin-p/sep/bc", arm=arm, seed=seed, train_returns=[-1.0])
-            # two episodes each, whose mean is the value above
-            record.update(mpc_returns=[mpc - 1.0, mpc + 1.0], policy_returns=[policy - 2.0, policy + 2.0])
-            path.write_text(json.dumps(record))
-    table = ab.paired("v0.3").splitlines()
-    assert len(table) == 3  # header, rule, one row
-    # MPC: +5 (seed 1), -1 (seed 2) -> higher on 1 / 2, mean +2; policy: -1, +3 -> 1 / 2, mean +1
-    assert table[2] == "| Pendulum-v1 | poplin-p/sep/bc | original | v0.3 | 2 | 1 / 2 | +2 | 1 / 2 | +1 |"
-    assert ab.paired("whitening").splitlines()[2:] == []  # no run of the reference arm: no rows
-
-
-def test_fidelity_ab_leave_one_out_arms_change_exactly_one_original_setting() -> None:
-    ab = load_benchmark("fidelity_ab")
-    for policy in ("poplin-p", "poplin-a"):
-        original = ab.arm_settings("original", policy)
-        for name in ab.LEFT_OUT:
-            arm = ab.arm_settings(f"original-without-{name}", policy)
-            changed = {key for key in original if arm[key] != original[key]}
-            # POPLIN-A's original already clones the executed actions: leaving out the planned target changes nothing
-            expected = set() if (policy, name) == ("poplin-a", "planned-target") else set(ab.ARMS[name])
-            assert changed == expected, (policy, name, changed)
-            assert all(arm[key] == ab.V0_3[key] for key in ab.ARMS[name])
-    assert ab.arm_settings("original-without-raw-targets", "poplin-p")["standardise_targets"] is True
-    assert ab.uses_pets_hooks("sb3_poplin/PETSCheetah-v0", "original-without-latest-window")
-    combined = ab.arm_settings("v0.3+planned-latest", "poplin-p")
-    assert combined == {**ab.V0_3, "distill_target": "planned", "distill_window": None}
-
-
-@pytest.mark.parametrize(
-    ("config", "arm"),
-    [
-        ("poplin-p/sep/bc", "original-without-whitening-plain"),
-        ("poplin-p/uni/gan", "original-without-whitening-plain"),
-        ("poplin-p/sep/avg", "original-without-whitening-plain"),
-        ("poplin-a/init", "v0.3+raw-targets"),
-        ("pets", "v0.3+raw-targets"),
-    ],
-)
-def test_the_defaults_are_the_ab_arms_they_were_chosen_from(config: str, arm: str) -> None:
-    # the README's claim: POPLIN-P's defaults are the fidelity A/B's `original-without-whitening-plain` arm (the
-    # original's settings with the function-preserving whitening); the others' are the earlier defaults with raw
-    # model targets (POPLIN-A keeps its 10 000-step window of executed actions)
-    ab = load_benchmark("fidelity_ab")
-    kwargs = configuration(config)
-    policy = kwargs.pop("policy")
-    settings = {**ab.V0_2, **ab.arm_settings(arm, policy)}
-    by_default, explicit = tiny(policy, **kwargs), tiny(policy, **kwargs, **settings)
-    assert {key: getattr(by_default.settings, key) for key in settings} == {
-        key: getattr(explicit.settings, key) for key in settings
-    }

@@ -65,3 +65,12 @@ def test_only_the_runner_parses_command_lines_and_the_algorithm_imports_none_of_
         if relative.parts[0] not in tooling and str(relative) not in aliases:
             imports = re.findall(r"^\s*(?:from|import) (sb3_poplin\.(?:experiments|analysis)\b\S*)", source, re.MULTILINE)
             assert not imports, f"{relative} imports {imports}: the algorithm must not depend on the runner"
+
+
+def test_the_package_tests_import_nothing_from_benchmarks() -> None:
+    """The benchmark scripts' tests live in benchmarks/tests; tests/ checks the package alone."""
+    for path in (Path(__file__).resolve().parent).glob("*.py"):
+        if path.name == Path(__file__).name:
+            continue
+        source = path.read_text()
+        assert "load_benchmark" not in source and not re.search(r"^\s*(from|import) benchmarks", source, re.MULTILINE), path

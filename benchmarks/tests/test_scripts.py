@@ -1,0 +1,197 @@
+"""
+The benchmark scripts' own logic (``benchmarks/``): the true-simulator planner of ``diagnose_mpc.py``, the posture
+check, the fidelity A/B's arms and where ``results_file.py`` puts a row. The package's tests (``tests/``) import
+nothing from ``benchmarks/``; ``make test`` runs both folders.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch as th
+from bench_util import load_benchmark, tiny
+
+from sb3_poplin import POPLIN
+from sb3_poplin.variants import configuration
+
+
+# ------------------------------------------------------------------------------------------------ diagnose_mpc.py
+def load_diagnose_mpc():
+    return load_benchmark("diagnose_mpc")
+
+
+@pytest.mark.parametrize("env_id", ["sb3_poplin/PETSCheetah-v0", "HalfCheetah-v5"])
+def test_true_simulator_planner_scores_what_the_env_pays(env_id):
+    """diagnose_mpc.py's true-simulator candidates: their returns equal stepping the env with the same actions."""
+    import gymnasium as gym
+    import mujoco
+
+    diagnose = load_diagnose_mpc()
+    kwargs = {} if env_id.startswith("sb3_poplin") else {"exclude_current_positions_from_observation": False}
+    env = gym.make(env_id, **kwargs)
+    model = POPLIN("pets", gym.make(env_id, **kwargs), horizon=4, population_size=6, num_elites=2, seed=0)
+    planner = diagnose.TrueModelPlanner(env, model)
+    env.reset(seed=3)
+    for _ in range(3):  # PETSCheetah: the first observation entry is a velocity from here on
+        env.step(env.action_space.sample())
+    unwrapped = env.unwrapped
+    state = np.empty(mujoco.mj_stateSize(unwrapped.model, planner.spec))
+    mujoco.mj_getState(unwrapped.model, unwrapped.data, state, planner.spec)
+    z = th.rand(1, 6, 4 * 6, generator=th.Generator().manual_seed(0)) * 2.2 - 1.1  # some beyond the bounds
+    scored = planner.evaluate(state, z)[0].numpy()
+    x_before = getattr(unwrapped, "_x_before", None)
+    for i in range(6):
+        mujoco.mj_setState(unwrapped.model, unwrapped.data, state, planner.spec)
+        mujoco.mj_forward(unwrapped.model, unwrapped.data)
+        if x_before is not None:
+            unwrapped._x_before = x_before
+        actions = model.planner.to_env_units(z[0, i].clamp(-1, 1).view(4, 6)).double().numpy()
+        paid = sum(float(unwrapped.step(action)[1]) for action in actions)
+        assert scored[i] == pytest.approx(paid, rel=1e-4, abs=1e-4), i
+
+
+@pytest.mark.parametrize(
+    "env_id, kwargs", [("Hopper-v5", {"exclude_current_positions_from_observation": False}), ("HalfCheetah-v5", {})]
+)
+def test_true_simulator_planner_refuses_envs_whose_observation_it_cannot_rebuild(env_id, kwargs):
+    """Hopper clips its velocities and terminates; HalfCheetah without x is not [qpos, qvel]: both raise, naming the fix."""
+    import gymnasium as gym
+
+    diagnose = load_diagnose_mpc()
+    model = POPLIN("pets", gym.make(env_id, **kwargs), horizon=2, population_size=4, num_elites=2, seed=0)
+    with pytest.raises(ValueError, match=r"observation shape .* is not one of them.*--true-steps 0"):
+        diagnose.TrueModelPlanner(gym.make(env_id, **kwargs), model)
+
+
+def test_true_simulator_planner_takes_another_budget():
+    """--true-budget: the true-simulator CEM plans at the given horizon/population/elites/iterations, not the agent's."""
+    import gymnasium as gym
+
+    diagnose = load_diagnose_mpc()
+    env_id = "sb3_poplin/PETSCheetah-v0"
+    model = POPLIN("pets", gym.make(env_id), horizon=3, population_size=6, num_elites=2, seed=0)
+    planner = diagnose.TrueModelPlanner(gym.make(env_id), model, (5, 8, 3, 2))
+    assert planner.horizon == 5 and planner.space.horizon == 5
+    assert (planner.cem.population_size, planner.cem.num_elites, planner.cem.iterations) == (8, 3, 2)
+    assert planner.mean.shape[-1] == 5 * 6  # the warm-start mean covers the new horizon
+    env = gym.make(env_id)
+    env.reset(seed=1)
+    planner.env = env.unwrapped
+    action = planner.act()
+    assert action.shape == (6,) and np.all(np.abs(action) <= 1.0)
+    with pytest.raises(ValueError, match=r"four positive integers \(horizon, population, elites, iterations\)"):
+        diagnose.TrueModelPlanner(gym.make(env_id), model, (5, 0, 3, 2))
+
+
+def test_cheetah_posture_counts_upside_down_pitches_over_full_turns():
+    """cheetah_posture.py: a pitch beyond ±90° is upside down, also after whole turns (the joint angle accumulates)."""
+    posture = load_benchmark("cheetah_posture")
+    pitches = np.array([0.0, 1.5, 1.7, -3.0, 2 * np.pi + 0.1, 2 * np.pi + 3.0, -4 * np.pi - 2.0, 1.0])
+    assert posture.upside_down_share(pitches) == pytest.approx(4 / 8)  # 1.7, -3.0, 2π+3.0, -4π-2.0
+
+
+@pytest.mark.parametrize(
+    "env_id, kwargs, index",
+    [
+        ("sb3_poplin/PETSCheetah-v0", {}, 2),
+        ("HalfCheetah-v5", {}, 1),
+        ("HalfCheetah-v5", {"exclude_current_positions_from_observation": False}, 2),
+    ],
+)
+def test_cheetah_posture_finds_the_pitch_in_the_observation(env_id, kwargs, index):
+    """The pitch index is derived from the observation layout and equals qpos[2] after a step; no pitch joint raises."""
+    import gymnasium as gym
+
+    posture = load_benchmark("cheetah_posture")
+    env = gym.make(env_id, **kwargs)
+    assert posture.pitch_index(env) == index
+    obs, *_ = env.step(env.action_space.sample())
+    assert obs[index] == env.unwrapped.data.qpos[2]
+    with pytest.raises(ValueError, match="joint 2 is not 'rooty'"):
+        posture.pitch_index(gym.make("Swimmer-v5"))
+
+
+# ------------------------------------------------------------------------------------------------ fidelity_ab.py
+def test_fidelity_ab_pairs_arms_seed_by_seed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    ab = load_benchmark("fidelity_ab")
+    monkeypatch.setattr(ab, "OUTPUT", tmp_path)
+    # reference v0.3 on seeds 0-2; "original" on seeds 1-3: only seeds 1 and 2 are shared
+    values = {
+        "v0.3": {0: (10.0, -5.0), 1: (20.0, -7.0), 2: (30.0, 1.0)},
+        "original": {1: (25.0, -8.0), 2: (29.0, 4.0), 3: (0, 0)},
+    }
+    for arm, seeds in values.items():
+        for seed, (mpc, policy) in seeds.items():
+            path = ab.run_path("Pendulum-v1", "poplin-p/sep/bc", arm, seed)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            record = dict(task="Pendulum-v1", configuration="poplin-p/sep/bc", arm=arm, seed=seed, train_returns=[-1.0])
+            # two episodes each, whose mean is the value above
+            record.update(mpc_returns=[mpc - 1.0, mpc + 1.0], policy_returns=[policy - 2.0, policy + 2.0])
+            path.write_text(json.dumps(record))
+    table = ab.paired("v0.3").splitlines()
+    assert len(table) == 3  # header, rule, one row
+    # MPC: +5 (seed 1), -1 (seed 2) -> higher on 1 / 2, mean +2; policy: -1, +3 -> 1 / 2, mean +1
+    assert table[2] == "| Pendulum-v1 | poplin-p/sep/bc | original | v0.3 | 2 | 1 / 2 | +2 | 1 / 2 | +1 |"
+    assert ab.paired("whitening").splitlines()[2:] == []  # no run of the reference arm: no rows
+
+
+def test_fidelity_ab_leave_one_out_arms_change_exactly_one_original_setting() -> None:
+    ab = load_benchmark("fidelity_ab")
+    for policy in ("poplin-p", "poplin-a"):
+        original = ab.arm_settings("original", policy)
+        for name in ab.LEFT_OUT:
+            arm = ab.arm_settings(f"original-without-{name}", policy)
+            changed = {key for key in original if arm[key] != original[key]}
+            # POPLIN-A's original already clones the executed actions: leaving out the planned target changes nothing
+            expected = set() if (policy, name) == ("poplin-a", "planned-target") else set(ab.ARMS[name])
+            assert changed == expected, (policy, name, changed)
+            assert all(arm[key] == ab.V0_3[key] for key in ab.ARMS[name])
+    assert ab.arm_settings("original-without-raw-targets", "poplin-p")["standardise_targets"] is True
+    assert ab.uses_pets_hooks("sb3_poplin/PETSCheetah-v0", "original-without-latest-window")
+    combined = ab.arm_settings("v0.3+planned-latest", "poplin-p")
+    assert combined == {**ab.V0_3, "distill_target": "planned", "distill_window": None}
+
+
+@pytest.mark.parametrize(
+    ("config", "arm"),
+    [
+        ("poplin-p/sep/bc", "original-without-whitening-plain"),
+        ("poplin-p/uni/gan", "original-without-whitening-plain"),
+        ("poplin-p/sep/avg", "original-without-whitening-plain"),
+        ("poplin-a/init", "v0.3+raw-targets"),
+        ("pets", "v0.3+raw-targets"),
+    ],
+)
+def test_the_defaults_are_the_ab_arms_they_were_chosen_from(config: str, arm: str) -> None:
+    # the README's claim: POPLIN-P's defaults are the fidelity A/B's `original-without-whitening-plain` arm (the
+    # original's settings with the function-preserving whitening); the others' are the earlier defaults with raw
+    # model targets (POPLIN-A keeps its 10 000-step window of executed actions)
+    ab = load_benchmark("fidelity_ab")
+    kwargs = configuration(config)
+    policy = kwargs.pop("policy")
+    settings = {**ab.V0_2, **ab.arm_settings(arm, policy)}
+    by_default, explicit = tiny(policy, **kwargs), tiny(policy, **kwargs, **settings)
+    assert {key: getattr(by_default.settings, key) for key in settings} == {
+        key: getattr(explicit.settings, key) for key in settings
+    }
+
+
+# ------------------------------------------------------------------------------------------------ results_file.py
+def test_a_row_goes_below_the_table_not_below_the_text_after_it(tmp_path: Path) -> None:
+    results = load_benchmark("results_file")
+    path = tmp_path / "RESULTS.md"
+    path.write_text(
+        "# Benchmark results\n\n## Speed\n\nintro\n\n| a | b |\n|---|---|\n| 1 | 2 |\n\nReading of the rows above.\n\n"
+        "## Other\n\ntext\n"
+    )
+    results.append_row("Speed", "intro", ["a", "b"], ["3", "4"], path=str(path))
+    assert "| 1 | 2 |\n| 3 | 4 |\n\nReading of the rows above.\n\n## Other" in path.read_text()
+    # a new section: heading, intro, header, rule, row at the end
+    results.append_row("New", "what it measures", ["x"], ["5"], path=str(path))
+    assert path.read_text().endswith("## New\n\nwhat it measures\n\n| x |\n|---|\n| 5 |\n")
+    # a section without its table (the header changed): the row goes to the section's end, before the next heading
+    results.append_row("Speed", "intro", ["a", "b", "c"], ["6", "7", "8"], path=str(path))
+    assert "Reading of the rows above.\n| 6 | 7 | 8 |\n\n## Other" in path.read_text()
