@@ -117,7 +117,7 @@ case "${1:-}" in
                 mkdir -p "$HERE/$column/zoo/$(dirname "$file")"
                 cp -p "$logs/$file" "$HERE/$column/zoo/$file"
             done
-            carry "$logs"
+            [ -n "${NO_CARRY:-}" ] || carry "$logs"  # NO_CARRY=1: the small files only (the carry at the stop)
         done ;;
     report)
         column_args "$2" report
