@@ -25,7 +25,7 @@ $(STAMP): $(PY) setup.cfg pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m sb3_poplin.experiments.demo
+	$(PY) -m sb3_poplin.demo
 
 test: $(STAMP)
 	$(PY) -m pytest

@@ -1,7 +1,7 @@
 """
 Zips of earlier releases: everything ``POPLIN.load`` does for them, in one place.
 
-The policy (also in docs/usage.md, "Saving and loading"): a zip of a published release (0.1.0, 0.2.0, 0.3.0) loads,
+The policy (also in docs/usage.md, "Saving, loading and resuming"): a zip of a published release (0.1.0, 0.2.0, 0.3.0) loads,
 predicts and continues training as it did under that release, until 1.0.0; zips of the development numbers 0.4.0 to
 0.4.2 (never published; the project's own benchmark agents are of them) load the same way, until 0.6.0. A zip of 0.5.0
 or later needs nothing from this module. Each shim below names the zips it serves and the release that removes it;
@@ -63,7 +63,7 @@ def saved_hooks(data: dict[str, Any], where: str, custom_objects: dict[str, Any]
 
     :param data: the zip's ``data`` (SB3's JSON, not yet deserialized)
     :param where: the zip, named in the error
-    :param custom_objects: ``load``'s, for hooks that no longer unpickle
+    :param custom_objects: ``load``'s (its ``policy_kwargs`` is not the zip's: not read here)
     :raises ValueError: the saved hooks cannot be read (a function they name no longer exists)
     """
     if "policy_kwargs" not in data:
@@ -72,11 +72,11 @@ def saved_hooks(data: dict[str, Any], where: str, custom_objects: dict[str, Any]
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # SB3 warns and drops some of what does not unpickle: the error says it
-            serialized = json.dumps({"policy_kwargs": data["policy_kwargs"]})
-            kwargs = json_to_data(serialized, custom_objects).get("policy_kwargs")
+            serialized = json.dumps({"policy_kwargs": data["policy_kwargs"]})  # the zip's own, not custom_objects'
+            kwargs = json_to_data(serialized).get("policy_kwargs")
     except Exception as error:  # anything unpickling can raise (a module or attribute gone, a changed class)
         kwargs, problem = None, f"{type(error).__name__}: {error}"
-    if not isinstance(kwargs, dict):
+    if not isinstance(kwargs, dict) or "model_input_exclude" not in kwargs:  # every release saved it
         raise ValueError(
             f"{where}: the model hooks its networks were built with (in its policy_kwargs) cannot be read ({problem}). "
             "Pass them, and skip the saved ones: POPLIN.load(path, model_hooks=ModelHooks(...), "

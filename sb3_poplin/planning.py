@@ -74,7 +74,7 @@ class CEMOptions:
         the last iteration
     :param variance_cap: sample with the search space's bound-aware variance cap (PETS's action sequences: 2 sigma
         inside the bounds; the other spaces have none); ``False``: the distribution's own variance, samples clipped to
-        the bounds (iCEM: with the cap, iCEM's candidates lose their extremes; docs/results.md)
+        the bounds (iCEM: with the cap, iCEM's candidates lose their extremes; docs/variants.md, "iCEM")
     """
 
     noise_beta: float = 0.0

@@ -572,6 +572,10 @@ class POPLIN(OffPolicyAlgorithm):
 
         :param control: ``"mpc"`` or ``"policy"`` to override the saved control mode
         """
+        if kwargs.get("model_hooks") is None:  # model_hooks=None: the saved ones
+            kwargs.pop("model_hooks", None)
+            if (custom_objects or {}).get("model_hooks") is not None:  # also for a zip without the record
+                kwargs["model_hooks"] = custom_objects["model_hooks"]  # type: ignore[index]
         # a zip of an earlier release continues as it was trained (sb3_poplin.compat)
         kwargs = {**saving.check_saved_agent(path, custom_objects, hooks_given="model_hooks" in kwargs), **kwargs}
         if isinstance(env, str):  # an env id, as the constructor takes

@@ -14,6 +14,7 @@ import io
 import json
 import os
 import pathlib
+import warnings
 import zipfile
 from typing import Any
 
@@ -84,4 +85,30 @@ def check_saved_agent(
             f"sb3_poplin {compat.LEGACY_VERSION} (_saved_planner_state in data): it was not written by a released "
             "POPLIN.save. Save the agent again with POPLIN.save."
         )
+    if "model_hooks" in data and not hooks_given:
+        check_saved_hooks(data["model_hooks"], where)
     return compat.legacy_attributes(names, data, where, custom_objects, hooks_given)
+
+
+def check_saved_hooks(serialized: Any, where: str) -> None:
+    """
+    :param serialized: a zip's ``model_hooks`` as its data holds it
+    :param where: the zip, named in the error
+    :raises ValueError: they do not unpickle (a function or class they name is gone), with the fix
+    """
+    from stable_baselines3.common.save_util import json_to_data
+
+    from sb3_poplin.tasks.hooks import ModelHooks
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # SB3 warns and drops some of what does not unpickle: said below
+            hooks = json_to_data(json.dumps({"model_hooks": serialized})).get("model_hooks")
+        problem = None if isinstance(hooks, ModelHooks) else f"got {type(hooks).__name__}"
+    except Exception as error:  # anything unpickling can raise
+        problem = f"{type(error).__name__}: {error}"
+    if problem is not None:
+        raise ValueError(
+            f"{where}: its model hooks cannot be read ({problem}). Pass them, and skip the saved ones: "
+            "POPLIN.load(path, model_hooks=ModelHooks(...), custom_objects={'model_hooks': None, 'policy_kwargs': {}})."
+        )

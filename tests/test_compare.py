@@ -1,5 +1,5 @@
 """
-The head-to-head command ``sb3-poplin-zoo compare`` (``sb3_poplin.compare``): planning the runs, the report, local
+The head-to-head command ``sb3-poplin-zoo compare`` (``sb3_poplin.experiments.compare``): planning the runs, the report, local
 and Ray execution, and resuming: complete runs are reused, killed runs continue from their last checkpoint.
 """
 

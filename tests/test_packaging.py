@@ -63,7 +63,12 @@ def test_only_the_runner_parses_command_lines_and_the_algorithm_imports_none_of_
         if relative.parts[0] != "experiments":
             assert "import argparse" not in source, f"{relative} parses a command line: move it to sb3_poplin/experiments"
         if relative.parts[0] not in tooling and str(relative) not in aliases:
-            imports = re.findall(r"^\s*(?:from|import) (sb3_poplin\.(?:experiments|analysis)\b\S*)", source, re.MULTILINE)
+            imports = re.findall(
+                r"^\s*((?:from|import) sb3_poplin\.(?:experiments|analysis)\b"
+                r"|from sb3_poplin import .*\b(?:experiments|analysis)\b)",
+                source,
+                re.MULTILINE,
+            )
             assert not imports, f"{relative} imports {imports}: the algorithm must not depend on the runner"
 
 
@@ -74,3 +79,21 @@ def test_the_package_tests_import_nothing_from_benchmarks() -> None:
             continue
         source = path.read_text()
         assert "load_benchmark" not in source and not re.search(r"^\s*(from|import) benchmarks", source, re.MULTILINE), path
+
+
+def test_the_old_module_paths_are_the_runner_s_modules() -> None:
+    import importlib
+    import sys
+    import warnings
+
+    from sb3_poplin.experiments import checkpoints, compare, demo, presets, zoo
+
+    for name, module in (("zoo", zoo), ("demo", demo)):  # entry points: no warning
+        sys.modules.pop(f"sb3_poplin.{name}", None)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert importlib.import_module(f"sb3_poplin.{name}") is module
+    for name, module in (("compare", compare), ("resume", checkpoints), ("presets", presets)):
+        sys.modules.pop(f"sb3_poplin.{name}", None)
+        with pytest.warns(DeprecationWarning, match=f"sb3_poplin.{name} moved to sb3_poplin.experiments"):
+            assert importlib.import_module(f"sb3_poplin.{name}") is module

@@ -148,7 +148,7 @@ def test_zips_record_the_release_that_saved_them(tmp_path: Path) -> None:
     assert POPLIN.load(tmp_path / "future.zip").sb3_poplin_version == "9.9.9"
 
 
-@pytest.mark.parametrize("env_id", ["sb3_poplin/PETSCheetah-v0", "HalfCheetah-v5", "Swimmer-v5", "Pendulum-v1"])
+@pytest.mark.parametrize("env_id", ["sb3_poplin/PETSCheetah-v0", "HalfCheetah-v5", "Swimmer-v5", "Hopper-v5"])
 def test_a_zip_records_its_hooks_and_loads_with_them_when_the_task_changes(
     env_id: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -204,3 +204,28 @@ def test_an_earlier_zip_whose_hooks_no_longer_unpickle_names_the_fix(tmp_path: P
     # the fix the message names
     fixed = POPLIN.load(tmp_path / "gone.zip", model_hooks=ModelHooks(), custom_objects={"policy_kwargs": {}})
     assert fixed.model_hooks == ModelHooks() and fixed.policy.dynamics.in_dim == 18 + 6
+
+
+def test_hooks_given_through_custom_objects_or_unreadable_saved_ones(tmp_path: Path) -> None:
+    other = HOOK_CANDIDATES["HalfCheetah-v5"]["sincos+progress"].hooks(policy=True)
+    old = DATA / "legacy-0.4.0-pets-half-cheetah.zip"
+    # a zip without the record takes custom_objects' hooks too, and its own policy_kwargs stay the source otherwise
+    assert POPLIN.load(old, custom_objects={"model_hooks": other}).model_hooks == other
+    assert POPLIN.load(old, custom_objects={"policy_kwargs": {}}).model_hooks == POPLIN.load(old).model_hooks
+    assert POPLIN.load(old, model_hooks=None).model_hooks == POPLIN.load(old).model_hooks  # None: the saved ones
+    # a zip of this release whose hooks no longer unpickle names the fix instead of failing later
+    agent = POPLIN("pets", "HalfCheetah-v5", seed=0, **TINY)
+    agent.save(tmp_path / "agent.zip")
+
+    def unreadable(data: dict[str, Any]) -> None:
+        import base64
+
+        data["model_hooks"][":serialized:"] = base64.b64encode(b"not a pickle").decode()
+
+    rewrite_data(tmp_path / "agent.zip", tmp_path / "unreadable.zip", unreadable)
+    with pytest.raises(ValueError, match=r"unreadable\.zip: its model hooks cannot be read .*model_hooks=ModelHooks"):
+        POPLIN.load(tmp_path / "unreadable.zip")
+    fixed = POPLIN.load(
+        tmp_path / "unreadable.zip", model_hooks=agent.model_hooks, custom_objects={"model_hooks": None, "policy_kwargs": {}}
+    )
+    assert fixed.model_hooks == agent.model_hooks

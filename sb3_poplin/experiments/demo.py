@@ -16,7 +16,7 @@ random policy.
 4. ``--out`` receives the zip, ``learning_curve.png`` and ``summary.json``.
 
 ``--steps`` defaults to 2000 (one random episode and nine MPC episodes), where the CPU settings already swing the
-pendulum up with MPC (docs/results.md), so that the demo fits in minutes on two cores; the
+pendulum up with MPC (docs/usage.md, "The demo"), so that the demo fits in minutes on two cores; the
 entry's ``n_timesteps`` is the budget of the zoo runs, and ``--steps`` can be raised to it.
 """
 

@@ -56,8 +56,8 @@ class ModelHooks:
         ``None``: the observation without ``model_input_exclude``
     :param targ_proc: the model's target, ``(obs, next_obs) -> target``; ``None``: ``next_obs - obs``
     :param obs_postproc: its inverse, ``(obs, prediction) -> next_obs``; ``None``: ``obs + prediction``
-    :param policy_input_exclude: observation indices the policy network does not see; ``None`` (resolved on
-        creation): ``model_input_exclude``
+    :param policy_input_exclude: observation indices the policy network does not see; ``None``: ``model_input_exclude``,
+        resolved on creation (``dataclasses.replace`` of ``model_input_exclude`` alone keeps the policy's)
     :param policy_obs_preproc: the policy network's input features from raw observations; ``None``: the
         observation without ``policy_input_exclude`` (not with a non-empty one)
     """

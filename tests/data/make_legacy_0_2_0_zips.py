@@ -1,5 +1,5 @@
 """
-Write a zip of sb3_poplin 0.2.0 (the release before PETSCheetah's model got PETS's hooks) for tests/test_reliability.py.
+Write a zip of sb3_poplin 0.2.0 (the release before PETSCheetah's model got PETS's hooks) for tests/test_save_load.py.
 
 Run with the 0.2.0 code (commit 4194bb1) on the path, from the repository root (the script's folder, not the working
 directory, comes first on ``sys.path``, so the checkout on ``PYTHONPATH`` is imported, not the editable install)::

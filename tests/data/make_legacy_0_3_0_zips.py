@@ -1,6 +1,6 @@
 """
 Write zips of sb3_poplin 0.3.0 (or of a later release, named as the second argument) on HalfCheetah-v5 for
-tests/test_reliability.py: the v5 tasks' model hooks changed after 0.3.0 and 0.4.0 (issue 34), and a zip must keep
+tests/test_save_load.py: the v5 tasks' model hooks changed after 0.3.0 and 0.4.0 (issue 34), and a zip must keep
 loading and planning as it was trained.
 
 Run with the 0.3.0 code (commit 41334bf) on the path, from the repository root (the script's folder, not the working

@@ -1,5 +1,5 @@
 """
-Write zips with sb3_poplin 0.1.0 (the release before the MPC / Distiller split) for tests/test_reliability.py.
+Write zips with sb3_poplin 0.1.0 (the release before the MPC / Distiller split) for tests/test_save_load.py.
 Run with the 0.1.0 code (commit a813380) on the path: ``PYTHONPATH=<its checkout> python make_legacy_zips.py tests/data``.
 """
 

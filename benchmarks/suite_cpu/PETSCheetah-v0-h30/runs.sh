@@ -124,7 +124,7 @@ case "${1:-}" in
         (cd "$REPO" && "$REPO/.venv/bin/python" benchmarks/compare.py "${ARGS[@]}" --report-only \
             --log-folder "$HERE/$FOLDER/zoo" --output "$HERE/$2") || true ;;
     status)
-        pgrep -af "sb3_poplin.zoo train" | sed 's/ -params.*//' || echo "no run is training"
+        pgrep -af "sb3_poplin(.experiments)?.zoo train" | sed 's/ -params.*//' || echo "no run is training"
         for log in "$ROOT"/logs/*/compare_logs/*.log; do
             [ -e "$log" ] && printf '%s: %s\n' "$(basename "$log" .log)" "$(grep -c '' "$log") lines"
         done ;;
