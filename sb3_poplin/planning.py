@@ -21,7 +21,7 @@ from abc import ABC, abstractmethod
 from itertools import pairwise
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import warnings
 
@@ -297,6 +297,44 @@ class CEM:
             elite_return = th.where(valid, top, th.zeros_like(top)).sum(dim=1) / count.squeeze(1)
         solution = mean if self.options.execute == "mean" else th.where(found.unsqueeze(1), elites[:, 0], mean)
         return OptimizerResult(solution, elite_return, elites, found, mean)
+
+
+class Optimizer(Protocol):
+    """
+    What searches a space for the planner (:class:`CEM`, :class:`RandomShooting`): anything with these can plan.
+
+    ``population_size`` and ``iterations``: its budget.
+    """
+
+    population_size: int
+    iterations: int
+
+    @property
+    def carried(self) -> int:
+        """The elites carried to the next env step (0: none)."""
+        ...
+
+    def evaluations(self, reuse: bool) -> int:
+        """Candidates evaluated per plan and env (``reuse``: an evaluation of an unchanged candidate is not repeated)."""
+        ...
+
+    def optimize(
+        self,
+        evaluate: Evaluate,
+        mean: th.Tensor,
+        var: th.Tensor,
+        constrain_var: Callable[[th.Tensor, th.Tensor], th.Tensor],
+        generator: th.Generator | None = None,
+        steps: int = 1,
+        carried: th.Tensor | None = None,
+        reuse: bool = False,
+    ) -> OptimizerResult:
+        """
+        Search from ``mean`` / ``var`` ``[n_envs, D]``, scoring candidates ``[n_envs, N, D]`` with ``evaluate``.
+
+        :return: the solution, its return, the final elites, whether a finite candidate was found, the mean
+        """
+        ...
 
 
 class RandomShooting:
@@ -595,7 +633,7 @@ class MPCPlanner:
 
     :param model: the dynamics ensemble
     :param search_space: what is searched
-    :param optimizer: :class:`CEM` or :class:`RandomShooting`
+    :param optimizer: an :class:`Optimizer` (:class:`CEM` or :class:`RandomShooting`)
     :param reward_fn: task reward ``(obs, action in env units, next_obs) -> [B]``; ``None`` when
         the model predicts the reward
     :param termination_fn: task termination, or ``None`` (never terminates); rewards after a
@@ -614,7 +652,7 @@ class MPCPlanner:
         self,
         model: ProbabilisticEnsemble,
         search_space: SearchSpace,
-        optimizer: CEM | RandomShooting,
+        optimizer: Optimizer,
         reward_fn: RewardFn | None,
         termination_fn: TerminationFn | None,
         propagation: str,

@@ -520,3 +520,33 @@ def test_the_settings_have_one_source() -> None:
     assert "model_epochs" not in variants.PLANNER_SETTINGS and "distill_window" in variants.STRING_SETTINGS
     assert "optimizer_kwargs" not in variants.STRING_SETTINGS and "horizon" not in variants.STRING_SETTINGS
     assert variants.resolve_settings("pets", variants.DEFAULT_SETTINGS).horizon == 30
+
+
+def test_an_optimizer_of_ones_own_plans_through_the_protocol():
+    """planning.Optimizer: any object with its budget, ``carried``, ``evaluations`` and ``optimize`` plans."""
+    from sb3_poplin.planning import ActionSequences, Optimizer, OptimizerResult
+
+    class BestOfTwo:  # scores the incoming mean and its negation; keeps the better
+        population_size, iterations, carried = 2, 1, 0
+
+        def evaluations(self, reuse: bool) -> int:
+            return 2
+
+        def optimize(self, evaluate, mean, var, constrain_var, generator=None, steps=1, carried=None, reuse=False):
+            z = th.stack([mean, -mean], dim=1)
+            returns = evaluate(z)
+            best = returns.argmax(dim=1)
+            solution = z[th.arange(len(z)), best]
+            found = th.ones(len(z), dtype=th.bool)
+            return OptimizerResult(solution, returns.max(dim=1).values, solution.unsqueeze(1), found, solution)
+
+    optimizer: Optimizer = BestOfTwo()
+    model = ProbabilisticEnsemble(3, 1, ensemble_size=2, hidden_sizes=(8,))
+    space = ActionSequences(horizon=3, action_dim=1, init_var=0.25)
+    planner = MPCPlanner(
+        model, space, optimizer, lambda o, a, n: a[..., 0], None, "expectation", 1, th.tensor([-2.0]), th.tensor([2.0])
+    )
+    state = th.full((2, 3), 0.5)  # the warm start: +0.5 everywhere; the reward pays the action: +0.5 beats -0.5
+    result = planner.plan(th.zeros(2, 3), state)
+    assert th.allclose(result.action, th.full((2, 1), 0.5)) and planner.flops() > 0
+    assert th.allclose(planner.plan(th.zeros(2, 3), -state).action, th.full((2, 1), 0.5))  # the negation wins
