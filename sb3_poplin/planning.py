@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from itertools import pairwise
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
@@ -314,10 +313,6 @@ class Optimizer(Protocol):
         """The elites carried to the next env step (0: none)."""
         ...
 
-    def evaluations(self, reuse: bool) -> int:
-        """Candidates evaluated per plan and env (``reuse``: an evaluation of an unchanged candidate is not repeated)."""
-        ...
-
     def optimize(
         self,
         evaluate: Evaluate,
@@ -436,11 +431,6 @@ class SearchSpace(ABC):
         """Per-plan context computed once from the real observations ``[n_envs, o]`` (default: none)."""
         return None
 
-    # the work the space adds to a plan, in rows through the networks (for :meth:`MPCPlanner.flops`)
-    policy_row_flops = 0  # FLOPs of one row through the policy network
-    policy_rows_per_step = 0  # policy rows per candidate particle and imagined step in :meth:`actions`
-    prepare_steps = 0  # imagined steps of :meth:`prepare` (one policy row and one mean-model row each, per env)
-
     @abstractmethod
     def actions(self, z: th.Tensor, t: int, states: th.Tensor, context: Any) -> th.Tensor:
         """
@@ -508,10 +498,6 @@ class PolicySearchSpace(SearchSpace):
         super().__init__(horizon, action_dim, init_var)
         self.policy = policy
 
-    @property
-    def policy_row_flops(self) -> int:  # type: ignore[override]
-        return sum(2 * d_in * d_out for d_in, d_out in self.policy.shapes)
-
     def fallback_action(self, obs: th.Tensor) -> th.Tensor:
         return self.policy.act(obs)
 
@@ -541,14 +527,6 @@ class PolicyActionNoise(PolicySearchSpace):
     @property
     def block(self) -> int:
         return self.action_dim
-
-    @property
-    def policy_rows_per_step(self) -> int:  # type: ignore[override]
-        return 0 if self.proposal == "init" else 1
-
-    @property
-    def prepare_steps(self) -> int:  # type: ignore[override]
-        return self.horizon if self.proposal == "init" else 0
 
     def prepare(self, obs: th.Tensor, planner: MPCPlanner) -> th.Tensor | None:
         if self.proposal != "init":
@@ -594,8 +572,6 @@ class PolicyParameterNoise(PolicySearchSpace):
     @property
     def block(self) -> int:
         return self.policy.num_params
-
-    policy_rows_per_step = 1
 
     @property
     def dim(self) -> int:
@@ -677,31 +653,6 @@ class MPCPlanner:
         self.action_scale = (action_high - action_low) / 2.0
         self.dtype = PLANNING_DTYPES[dtype]
         self.max_batch_rows = max_batch_rows
-
-    def flops(self, n_envs: int = 1) -> float:
-        """
-        Analytic FLOPs of one plan (2 per multiply-add of the network products, the rest neglected): every CEM
-        iteration pushes each candidate's rows through the ensemble (expectation: E members on the mean half of the
-        output layer; particles: one member each, mean and log-variance) and, where the search space says so, through
-        the policy network; plus the search space's per-plan work and, with a policy, the executed and fallback
-        actions. ``tests/test_planning.py`` checks it against the rows the networks see during a plan.
-
-        :param n_envs: envs planned in one batch
-        """
-        model, space = self.model, self.search_space
-        hidden = sum(2 * d_in * d_out for d_in, d_out in pairwise([model.in_dim, *model.hidden_sizes]))
-        last = model.hidden_sizes[-1] if model.hidden_sizes else model.in_dim
-        mean_row = hidden + 2 * last * model.out_dim  # the mean half of the output layer
-        if self.propagation == "expectation":
-            model_rows = model.ensemble_size * mean_row
-        else:
-            model_rows = self.num_particles * (hidden + 2 * last * 2 * model.out_dim)
-        policy_rows = self.num_particles * space.policy_rows_per_step * space.policy_row_flops
-        candidates = self.optimizer.evaluations(reuse=self.propagation == "expectation")
-        per_plan = candidates * space.horizon * (model_rows + policy_rows)
-        per_plan += space.prepare_steps * (model.ensemble_size * mean_row + space.policy_row_flops)
-        per_plan += 2 * space.policy_row_flops  # the executed and the fallback action of every env
-        return float(n_envs * per_plan)
 
     @property
     def state_dim(self) -> int:
@@ -1004,3 +955,43 @@ class MPCController:
         if warm is not None and warm.shape[-1] != self.planner.state_dim:
             warm = None
         self.warm_start = None if warm is None else warm.to(self.device)
+
+
+def _fused_linear_flops(x_shape: th.Size, w_shape: th.Size, *args: Any, **kwargs: Any) -> int:
+    """FLOPs of oneDNN's fused linear (``x [..., in]``, ``w [out, in]``): 2 per multiply-add, as torch counts ``addmm``."""
+    return 2 * math.prod(x_shape[:-1]) * w_shape[-1] * w_shape[0]
+
+
+def plan_flops(
+    planner: MPCPlanner, obs: th.Tensor | np.ndarray, state: th.Tensor | None = None, generator: th.Generator | None = None
+) -> int:
+    """
+    FLOPs of one plan, counted while it runs: its matrix products (the networks' layers, CEM's refit to the elites and
+    colored noise; 2 per multiply-add, element-wise work neglected) under :class:`torch.utils.flop_counter.FlopCounterMode`.
+    It counts what the planner really does (iCEM's decayed populations and kept elites, POPLIN-A Init's open-loop
+    proposals, the executed and fallback actions), so a speed benchmark's fraction of peak is that of the plan it timed.
+
+    :param planner: the planner
+    :param obs: real observations ``[n_envs, o]`` (on the planner's device)
+    :param state: warm start ``[n_envs, S]`` (default: the episode start's, :meth:`MPCPlanner.initial_state`)
+    :param generator: random generator of the plan (default: a fresh one seeded 0, so that no state is consumed)
+    :return: the FLOPs of the plan for all ``n_envs`` envs
+    """
+    from torch.utils.flop_counter import FlopCounterMode
+
+    obs = th.as_tensor(obs, dtype=th.float32, device=planner.action_low.device)
+    if obs.dim() != 2:
+        raise ValueError(f"plan_flops takes observations [n_envs, obs_dim], got shape {tuple(obs.shape)}: add a batch axis.")
+    if state is None:
+        state = planner.initial_state(obs.shape[0], obs.device)
+    if generator is None:
+        generator = th.Generator(device=obs.device).manual_seed(0)
+    custom = {}
+    if th.backends.mkldnn.is_available() and hasattr(th.ops.mkldnn, "_linear_pointwise"):
+        custom[th.ops.mkldnn._linear_pointwise] = _fused_linear_flops
+    # an uncounted plan first: it makes the host's first choice of forward paths, whose timing probe is not the plan's
+    planner.plan(obs, state, th.Generator(device=obs.device).manual_seed(0))
+    counter = FlopCounterMode(display=False, custom_mapping=custom)
+    with counter:
+        planner.plan(obs, state, generator)
+    return int(counter.get_total_flops())

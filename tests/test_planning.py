@@ -3,10 +3,10 @@
 import itertools
 import math
 
-import numpy as np
 import pytest
 import torch as th
 
+from sb3_poplin import kernels
 from sb3_poplin.planning import CEM, ActionSequences, RandomShooting
 from sb3_poplin.sampling import truncated_normal
 
@@ -231,6 +231,48 @@ def test_cem_variance_update_weights_only_finite_elites():
     assert th.allclose(variances[1][0].double(), expected_var, atol=1e-6)
 
 
+def analytic_plan_flops(model, n_envs: int) -> int:
+    """
+    One plan's FLOPs from the settings alone (2 per multiply-add of the matrix products): every CEM iteration pushes
+    each candidate's rows through the ensemble (expectation: E members on the mean half of the output layer; particles:
+    one member a particle, both halves) and, where the variant re-queries the policy on imagined states, through the
+    policy (POPLIN-P's perturbed network of one particle as two products a layer, ``x theta + x omega``); POPLIN-A Init
+    rolls the policy open-loop through the mean model once a plan; with a policy, the executed and the fallback action
+    are one row each; CEM refits to its elites with two products an iteration and colors
+    its noise with one a sample.
+    """
+    planner, dynamics, actor = model.planner, model.policy.dynamics, model.policy.actor
+    widths = [dynamics.in_dim, *dynamics.hidden_sizes]
+    hidden = sum(2 * a * b for a, b in itertools.pairwise(widths))
+    mean_row = hidden + 2 * widths[-1] * dynamics.out_dim
+    expectation = planner.propagation == "expectation"
+    if expectation:
+        model_rows = dynamics.ensemble_size * mean_row
+    else:
+        model_rows = planner.num_particles * (hidden + 2 * widths[-1] * 2 * dynamics.out_dim)
+    policy_row = 0 if actor is None else sum(2 * a * b for a, b in actor.shapes)
+    init = getattr(planner.search_space, "proposal", None) == "init"  # POPLIN-A Init
+    perturbed = hasattr(planner.search_space, "noise")  # POPLIN-P
+    # POPLIN-P's network of one row and one particle computes x theta + x omega: two products a layer
+    perturbed_row = 2 * policy_row if planner.num_particles == 1 else planner.num_particles * policy_row
+    if actor is None or init:
+        step_policy = 0
+    else:
+        step_policy = perturbed_row if perturbed else planner.num_particles * policy_row
+    candidates = planner.optimizer.evaluations(reuse=expectation)
+    horizon = planner.search_space.horizon
+    flops = candidates * horizon * (model_rows + step_policy)
+    flops += horizon * (dynamics.ensemble_size * mean_row + policy_row) if init else 0
+    flops += (2 * policy_row if perturbed else policy_row) + policy_row  # the executed (one row) and fallback action
+    optimizer, space = planner.optimizer, planner.search_space
+    if isinstance(optimizer, CEM):  # the elites' weighted mean and variance: two [1, K] x [K, D] products an iteration
+        flops += optimizer.iterations * 2 * 2 * optimizer.num_elites * space.dim
+        if optimizer.options.noise_beta > 0:  # colored noise: an [H, H] filter on every sample's [H, block]
+            sampled = sum(optimizer.samples(i) for i in range(optimizer.iterations)) + optimizer.carried
+            flops += sampled * 2 * space.steps**2 * space.block
+    return n_envs * flops
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [
@@ -244,34 +286,33 @@ def test_cem_variance_update_weights_only_finite_elites():
         dict(policy="pets", optimizer="icem"),
         dict(policy="poplin-a", proposal="replan", propagation="ts1", num_particles=4, optimizer="icem"),
         dict(policy="poplin-p", noise="sep", optimizer="icem", optimizer_kwargs=dict(keep_elites=0.6, execute="mean")),
+        dict(policy="rs"),
+        dict(policy="poplin-p", noise="sep", planning_dtype="bfloat16"),  # products under autocast count the same
     ],
 )
-def test_plan_flops_count_the_rows_the_networks_see(kwargs):
-    """``MPCPlanner.flops`` against the rows pushed through the ensemble and the policy during one real plan."""
+def test_plan_flops_count_the_products_of_one_real_plan(kwargs):
+    """``plan_flops`` (counted by torch while a plan runs) against the analytic count from the settings."""
     from conftest import TINY
 
     from sb3_poplin import POPLIN
+    from sb3_poplin.planning import plan_flops
 
     model = POPLIN(env="Pendulum-v1", seed=0, **{**TINY, "dynamics_net_arch": (16, 24), **kwargs})
-    dynamics, actor = model.policy.dynamics, model.policy.actor
-    widths = [dynamics.in_dim, 16, 24]
-    hidden = sum(2 * a * b for a, b in itertools.pairwise(widths))
-    counted = []
+    obs = th.tensor([[0.3, 0.95, -1.0], [-1.0, 0.0, 2.0]])
+    assert plan_flops(model.planner, obs) == analytic_plan_flops(model, n_envs=2) > 0
 
-    def counting(method, flops_per_row):
-        def wrapped(x, *args):
-            counted.append(math.prod(x.shape[:-1]) * flops_per_row)
-            return method(x, *args)
 
-        return wrapped
+@pytest.mark.parametrize("path", kernels.PATHS)
+def test_plan_flops_on_every_forward_path(path, monkeypatch):
+    """Each of the ensemble's forward paths (oneDNN's fused linear too) is counted, and the count does not depend on it."""
+    from conftest import TINY
 
-    e, out = dynamics.ensemble_size, dynamics.out_dim
-    dynamics.shared_input_mean = counting(dynamics.shared_input_mean, e * (hidden + 2 * 24 * out))  # B rows, E members
-    dynamics.predict = counting(dynamics.predict, hidden + 2 * 24 * 2 * out)  # [E, B, in]: E * B rows
-    if actor is not None:
-        policy_row = sum(2 * a * b for a, b in actor.shapes)
-        actor.forward = counting(actor.forward, policy_row)
-        actor.forward_perturbed = counting(actor.forward_perturbed, policy_row)
-    obs = np.array([[0.3, 0.95, -1.0], [-1.0, 0.0, 2.0]], dtype=np.float32)
-    model.predict(obs, episode_start=np.ones(2, dtype=bool))
-    assert sum(counted) == model.planner.flops(n_envs=2) > 0
+    from sb3_poplin import POPLIN
+    from sb3_poplin.planning import plan_flops
+
+    if path == "fused" and not kernels.fused_available(th.float32):
+        pytest.skip("this torch build has no oneDNN fused linear")
+    monkeypatch.setenv(kernels.PATH_ENV, path)
+    model = POPLIN(env="Pendulum-v1", seed=0, **{**TINY, "dynamics_net_arch": (16, 24), "policy": "pets"})
+    obs = th.tensor([[0.3, 0.95, -1.0]])
+    assert plan_flops(model.planner, obs) == analytic_plan_flops(model, n_envs=1) > 0

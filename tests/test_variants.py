@@ -523,14 +523,11 @@ def test_the_settings_have_one_source() -> None:
 
 
 def test_an_optimizer_of_ones_own_plans_through_the_protocol():
-    """planning.Optimizer: any object with its budget, ``carried``, ``evaluations`` and ``optimize`` plans."""
-    from sb3_poplin.planning import ActionSequences, Optimizer, OptimizerResult
+    """planning.Optimizer: any object with its budget, ``carried`` and ``optimize`` plans (and its FLOPs count)."""
+    from sb3_poplin.planning import ActionSequences, Optimizer, OptimizerResult, plan_flops
 
     class BestOfTwo:  # scores the incoming mean and its negation; keeps the better
         population_size, iterations, carried = 2, 1, 0
-
-        def evaluations(self, reuse: bool) -> int:
-            return 2
 
         def optimize(self, evaluate, mean, var, constrain_var, generator=None, steps=1, carried=None, reuse=False):
             z = th.stack([mean, -mean], dim=1)
@@ -548,5 +545,7 @@ def test_an_optimizer_of_ones_own_plans_through_the_protocol():
     )
     state = th.full((2, 3), 0.5)  # the warm start: +0.5 everywhere; the reward pays the action: +0.5 beats -0.5
     result = planner.plan(th.zeros(2, 3), state)
-    assert th.allclose(result.action, th.full((2, 1), 0.5)) and planner.flops() > 0
+    assert th.allclose(result.action, th.full((2, 1), 0.5))
+    # 2 candidates x 3 steps x 2 members through [4 -> 8 -> 3 mean outputs], 2 envs
+    assert plan_flops(planner, th.zeros(2, 3), state) == 2 * 2 * 3 * 2 * (2 * 4 * 8 + 2 * 8 * 3)
     assert th.allclose(planner.plan(th.zeros(2, 3), -state).action, th.full((2, 1), 0.5))  # the negation wins

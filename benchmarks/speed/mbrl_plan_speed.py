@@ -36,6 +36,7 @@ import mbrl.models
 import mbrl.planning
 import mbrl.types
 from sb3_poplin import POPLIN
+from sb3_poplin.planning import plan_flops
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # speed/: planning_speed
 # benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
@@ -146,8 +147,8 @@ def main() -> None:
     intro = (
         "PETS at the paper setting (HalfCheetah-v5 sizes, population 500, horizon 30, 5 CEM iterations, 50 elites, "
         "5 x 4 x 200 SiLU), one process, one plan of each library per round (medians; the ratio is the median of the "
-        "rounds' ratios); the fp32 matmul peak measured in the same process; FLOPs of the network products counted "
-        "analytically (ours: `MPCPlanner.flops`; the same products for mbrl-lib)."
+        "rounds' ratios); the fp32 matmul peak measured in the same process; FLOPs: the matrix products of one of our "
+        "plans as torch counts them (`sb3_poplin.planning.plan_flops`; mbrl-lib's plan makes the same network products)."
     )
     header = [
         "date",
@@ -161,7 +162,7 @@ def main() -> None:
     ]
     for ours_name, (theirs_name, particles) in PROPAGATIONS.items():
         ours, theirs = our_agent(ours_name, particles), mbrl_agent(theirs_name, particles)
-        flops = ours.planner.flops()
+        flops = plan_flops(ours.planner, obs[None])  # mbrl-lib's plan makes the same network products
         peak = matmul_peak(th.float32)
         samples = interleaved(
             {"ours": lambda a=ours: a.predict(obs), "mbrl": lambda a=theirs: (a.reset(), a.act(obs))}, args.rounds

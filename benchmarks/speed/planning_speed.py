@@ -6,12 +6,13 @@ process, at the same thread count). Adds one row per run to benchmarks/RESULTS.m
 
 Paper setting: HalfCheetah-v5 sizes, population 500, horizon 30, 5 CEM iterations, 50 elites, a
 5-member 4x200 ensemble; expectation propagation and 20-particle TS-infinity; PETS, POPLIN-A (init)
-and POPLIN-P (sep, [32] policy); fp32 and bf16. FLOPs are counted analytically from the layer shapes
-(2 * d_in * d_out per row and layer; biases and activations not counted). ``--envs N`` plans N envs in one batch
-(rows marked "N envs"; the FLOPs and each product's rows scale with N). The ratios (POPLIN-P/PETS,
-bf16 speed-ups) come from interleaved rounds, one plan per configuration in turn, so that the drift of a
-shared machine affects both sides of a ratio alike. ``--device cuda`` plans on the GPU (the matmul peak then comes
-from 8192^3 products, synchronised; ``benchmarks/device_check.sh`` runs it).
+and POPLIN-P (sep, [32] policy); fp32 and bf16. FLOPs are the matrix products torch counts during one plan
+(``sb3_poplin.planning.plan_flops``: 2 per multiply-add, biases and activations not counted; POPLIN-P's perturbed
+layers are two products, x theta + x omega; rows before 2026-12-07 counted one, from the layer shapes).
+``--envs N`` plans N envs in one batch (rows marked "N envs"; the FLOPs and each product's rows scale with N).
+The ratios (POPLIN-P/PETS, bf16 speed-ups) come from interleaved rounds, one plan per configuration in turn, so that
+the drift of a shared machine affects both sides of a ratio alike. ``--device cuda`` plans on the GPU (the matmul
+peak then comes from 8192^3 products, synchronised; ``benchmarks/device_check.sh`` runs it).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_poplin import POPLIN
+from sb3_poplin.planning import plan_flops
 
 # benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -230,7 +232,7 @@ def main() -> None:
         )
         peak = matmul_peak(th.float32 if dtype == "float32" else th.bfloat16, device)  # right before: the machine drifts
         seconds = time_plans(model, obs, args.repeats)
-        flops = model.planner.flops(args.envs)
+        flops = plan_flops(model.planner, np.atleast_2d(obs))  # counted by torch during one plan
         rate = flops / seconds / 1e9
         peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         key = (name, propagation, dtype)
