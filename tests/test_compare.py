@@ -227,9 +227,10 @@ def test_report_only_labels_runs_not_made_yet_missing_and_not_failed(
     assert task["missing"] == {"pets": 1} and task["failed"] == {}
     # a run that was started and failed is still a failure
     job = compare_module.plan_jobs(compare_module.parse_args([*common, "--seeds", "2"]))[0]
-    summary = {"labels": {}, "failed": {"pets": 1}, "missing": {}, "expected": {"pets": 1}}
+    protocol = compare_module.ProtocolSummary(2000, 3000)
+    summary = compare_module.TaskSummary("Pendulum-v1", 0, {}, {"pets": 1}, {"pets": 1}, {}, protocol)
     assert compare_module.format_cell(summary, "PETS (MPC)", job.column) == "failed (1/1)"
-    summary = {"labels": {}, "failed": {}, "missing": {"pets": 1}, "expected": {"pets": 1}}
+    summary = compare_module.TaskSummary("Pendulum-v1", 0, {}, {}, {"pets": 1}, {"pets": 1}, protocol)
     assert compare_module.format_cell(summary, "PETS (MPC)", job.column) == "missing (1/1)"
 
 

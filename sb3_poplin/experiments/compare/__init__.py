@@ -76,6 +76,11 @@ from sb3_poplin.experiments.compare.jobs import (
 )
 from sb3_poplin.experiments.compare.report import (
     Curve,
+    ProtocolSummary,
+    Reach,
+    ReachEntry,
+    SeedValues,
+    TaskSummary,
     TrainingEpisodes,
     format_cell,
     label_algo,
@@ -96,6 +101,11 @@ __all__ = [
     "Curve",
     "Job",
     "JobResult",
+    "ProtocolSummary",
+    "Reach",
+    "ReachEntry",
+    "SeedValues",
+    "TaskSummary",
     "TrainingEpisodes",
     "algo_settings",
     "evaluation_episodes",

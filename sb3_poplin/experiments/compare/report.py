@@ -7,7 +7,7 @@ The comparison's report: evaluation curves and training episodes of the runs, su
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -118,7 +118,148 @@ def first_step_reaching(steps: np.ndarray, values: np.ndarray, target: float) ->
     return int(steps[reached[0]]) if len(reached) else None
 
 
-def reach_entry(steps: np.ndarray, per_seed: list[np.ndarray], seeds: list[int], target: float) -> dict[str, Any]:
+@dataclass
+class SeedValues:
+    """
+    One column's value on each seed.
+
+    :param seeds: the seeds
+    :param values: one value a seed, in the same order
+    """
+
+    seeds: list[int] = field(default_factory=list)
+    values: list[float] = field(default_factory=list)
+
+    def add(self, seed: int, value: float) -> None:
+        self.seeds.append(seed)
+        self.values.append(value)
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(self.values))
+
+    @property
+    def std(self) -> float:
+        """The population standard deviation over seeds (``ddof=0``)."""
+        return float(np.std(self.values))
+
+    def to_json(self, key: str) -> dict[str, Any]:
+        """:param key: the name of the values in ``results.json`` (``"final"`` or ``"values"``)"""
+        return {"seeds": self.seeds, key: self.values, "mean": self.mean, "std": self.std}
+
+
+@dataclass
+class ReachEntry:
+    """
+    When one column first reached a target return.
+
+    :param step: the first step of the mean curve over seeds at or above the target (``None``: never)
+    :param per_seed: seed (as text) -> its curve's first step at or above the target (``None``: never)
+    :param last_step: the last step the curves reached
+    """
+
+    step: int | None
+    per_seed: dict[str, int | None]
+    last_step: int
+
+
+@dataclass
+class Reach:
+    """
+    The steps at which the columns reached the reference column's final return.
+
+    :param reference: the reference column's label
+    :param target: its mean final evaluation return
+    :param evaluation: label -> when its evaluation curve reached ``target``
+    :param paper_target: the reference's return by the paper's protocol (``None``: it has no training episodes)
+    :param paper_protocol: algorithm label -> when its training-episode curve reached ``paper_target``
+    """
+
+    reference: str
+    target: float
+    evaluation: dict[str, ReachEntry] = field(default_factory=dict)
+    paper_target: float | None = None
+    paper_protocol: dict[str, ReachEntry] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        entry: dict[str, Any] = {
+            "reference": self.reference,
+            "target": self.target,
+            "evaluation": {label: asdict(reach) for label, reach in self.evaluation.items()},
+        }
+        if self.paper_target is not None:
+            entry["paper_target"] = self.paper_target
+            entry["paper_protocol"] = {label: asdict(reach) for label, reach in self.paper_protocol.items()}
+        return entry
+
+
+@dataclass
+class ProtocolSummary:
+    """
+    The paper's protocol on one task: each algorithm's mean return of the training episodes that ended in the last
+    ``window`` steps before ``step``.
+
+    :param step: the protocol's step (``None``: not computed)
+    :param window: steps
+    :param labels: algorithm label -> its value on each seed
+    """
+
+    step: int | None
+    window: int
+    labels: dict[str, SeedValues] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        labels = {label: values.to_json("values") for label, values in self.labels.items()}
+        return {"step": self.step, "window": self.window, "labels": labels}
+
+
+@dataclass
+class TaskSummary:
+    """
+    One task's results: the final evaluation returns at the matched step, the paper's protocol, the steps to reach.
+
+    :param env: gymnasium id
+    :param matched_step: the last evaluation step every run of the task reached
+    :param labels: column label -> each seed's evaluation return at ``matched_step``
+    :param failed: algorithm -> runs that failed
+    :param expected: algorithm -> runs planned
+    :param missing: algorithm -> runs not found and not started (``--report-only``)
+    :param paper_protocol: the paper's protocol
+    :param reach: the steps to reach the reference's final return (``None``: no reference column ran)
+    :param name: the task's name in the tables (the paper's, in the paper suite)
+    """
+
+    env: str
+    matched_step: int
+    labels: dict[str, SeedValues]
+    failed: dict[str, int]
+    expected: dict[str, int]
+    missing: dict[str, int]
+    paper_protocol: ProtocolSummary
+    reach: Reach | None = None
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        self.name = self.name or self.env
+
+    def to_json(self) -> dict[str, Any]:
+        """The task's entry of ``results.json``."""
+        entry: dict[str, Any] = {
+            "env": self.env,
+            "matched_step": self.matched_step,
+            "labels": {label: values.to_json("final") for label, values in self.labels.items()},
+            "failed": self.failed,
+            "expected": self.expected,
+            "missing": self.missing,
+            "paper_protocol": self.paper_protocol.to_json(),
+        }
+        if self.reach is not None:
+            entry["reach"] = self.reach.to_json()
+        entry["name"] = self.name
+        return entry
+
+
+def reach_entry(steps: np.ndarray, per_seed: list[np.ndarray], seeds: list[int], target: float) -> ReachEntry:
     """
     :param steps: the steps shared by the seeds' curves
     :param per_seed: each seed's return at those steps
@@ -128,11 +269,11 @@ def reach_entry(steps: np.ndarray, per_seed: list[np.ndarray], seeds: list[int],
     """
     mean = np.mean(np.stack(per_seed), axis=0)
     pairs = zip(seeds, per_seed, strict=True)
-    return {
-        "step": first_step_reaching(steps, mean, target),
-        "per_seed": {str(seed): first_step_reaching(steps, values, target) for seed, values in pairs},
-        "last_step": int(steps[-1]),
-    }
+    return ReachEntry(
+        first_step_reaching(steps, mean, target),
+        {str(seed): first_step_reaching(steps, values, target) for seed, values in pairs},
+        int(steps[-1]),
+    )
 
 
 def value_at(curve: Curve, step: int) -> float:
@@ -155,7 +296,7 @@ def summarize(
     window: int = PAPER_WINDOW,
     reference: str | None = None,
     missing: dict[str, int] | None = None,
-) -> dict[str, Any]:
+) -> TaskSummary:
     """
     Final returns of one task at the matched step (the last evaluation step every run reached), by the paper's
     protocol at the task's smallest budget, and the steps at which each column reached the reference's final return.
@@ -169,55 +310,41 @@ def summarize(
     :param window: the paper's protocol averages the training episodes that ended in the last ``window`` steps
     :param reference: the column whose final return the others must reach (``None`` or absent: no reach table)
     :param missing: algorithm -> runs not found and not started (``--report-only``)
-    :return: the summary written to ``results.json``
     """
     matched = int(min(curve.timesteps[-1] for curve in curves)) if curves else 0
-    labels: dict[str, dict[str, Any]] = {}
+    labels: dict[str, SeedValues] = {}
     for curve in curves:
-        entry = labels.setdefault(curve.label, {"seeds": [], "final": []})
-        entry["seeds"].append(curve.seed)
-        entry["final"].append(value_at(curve, matched))
-    for entry in labels.values():
-        entry["mean"] = float(np.mean(entry["final"]))
-        entry["std"] = float(np.std(entry["final"]))
-    summary: dict[str, Any] = {"env": env, "matched_step": matched, "labels": labels, "failed": failed, "expected": expected}
-    summary["missing"] = dict(missing or {})
+        labels.setdefault(curve.label, SeedValues()).add(curve.seed, value_at(curve, matched))
     training = training or []
-    paper: dict[str, dict[str, Any]] = {}
+    protocol = ProtocolSummary(budget_step, window)
     if budget_step is not None:
         for episodes in training:
             value = episodes.window_mean(budget_step, window)
             if not np.isnan(value):
-                entry = paper.setdefault(episodes.label, {"seeds": [], "values": []})
-                entry["seeds"].append(episodes.seed)
-                entry["values"].append(value)
-        for entry in paper.values():
-            entry["mean"] = float(np.mean(entry["values"]))
-            entry["std"] = float(np.std(entry["values"]))
-    summary["paper_protocol"] = {"step": budget_step, "window": window, "labels": paper}
+                protocol.labels.setdefault(episodes.label, SeedValues()).add(episodes.seed, value)
+    summary = TaskSummary(env, matched, labels, failed, expected, dict(missing or {}), protocol)
     if reference is None or reference not in labels:
         return summary
-    reach: dict[str, Any] = {"reference": reference, "target": labels[reference]["mean"], "evaluation": {}}
+    reach = Reach(reference, labels[reference].mean)
     for label in labels:
         runs = [curve for curve in curves if curve.label == label]
         length = min(len(curve.timesteps) for curve in runs)
         values = [curve.returns[:length] for curve in runs]
-        reach["evaluation"][label] = reach_entry(runs[0].timesteps[:length], values, [c.seed for c in runs], reach["target"])
-    paper_reference = paper.get(label_algo(reference).upper())
+        reach.evaluation[label] = reach_entry(runs[0].timesteps[:length], values, [c.seed for c in runs], reach.target)
+    paper_reference = protocol.labels.get(label_algo(reference).upper())
     if paper_reference is not None:
-        reach["paper_target"] = paper_reference["mean"]
-        reach["paper_protocol"] = {}
+        reach.paper_target = paper_reference.mean
         for label in dict.fromkeys(episodes.label for episodes in training):
             trained = [episodes for episodes in training if episodes.label == label]
             steps = np.unique(np.concatenate([episodes.end_steps for episodes in trained]))
             values = [np.array([episodes.window_mean(int(step), window) for step in steps]) for episodes in trained]
             seeds = [episodes.seed for episodes in trained]
-            reach["paper_protocol"][label] = reach_entry(steps, values, seeds, reach["paper_target"])
-    summary["reach"] = reach
+            reach.paper_protocol[label] = reach_entry(steps, values, seeds, reach.paper_target)
+    summary.reach = reach
     return summary
 
 
-def format_cell(summary: dict[str, Any], label: str, algo: str) -> str:
+def format_cell(summary: TaskSummary, label: str, algo: str) -> str:
     """
     :param summary: a task's summary
     :param label: column label
@@ -225,16 +352,16 @@ def format_cell(summary: dict[str, Any], label: str, algo: str) -> str:
     :return: the table cell: mean ± std over seeds, the number of seeds, of failed runs and of missing ones (not run
         yet: ``--report-only``)
     """
-    entry = summary["labels"].get(label)
-    absent = {"failed": summary["failed"].get(algo, 0), "missing": summary.get("missing", {}).get(algo, 0)}
+    entry = summary.labels.get(label)
+    absent = {"failed": summary.failed.get(algo, 0), "missing": summary.missing.get(algo, 0)}
     note = "".join(f", {count} {kind}" for kind, count in absent.items() if count)
     if entry is None:
-        expected = summary["expected"].get(algo, 0)
+        expected = summary.expected.get(algo, 0)
         return ", ".join(f"{kind} ({count}/{expected})" for kind, count in absent.items() if count) or "—"
-    n_seeds = len(entry["final"])
+    n_seeds = len(entry.values)
     if n_seeds == 1:
-        return f"{entry['mean']:.1f} (1 seed{note})"
-    return f"{entry['mean']:.1f} ± {entry['std']:.1f} ({n_seeds} seeds{note})"
+        return f"{entry.mean:.1f} (1 seed{note})"
+    return f"{entry.mean:.1f} ± {entry.std:.1f} ({n_seeds} seeds{note})"
 
 
 def label_algo(label: str) -> str:
@@ -245,47 +372,47 @@ def label_algo(label: str) -> str:
     return label.removesuffix(" (MPC)").removesuffix(" (policy)").lower()
 
 
-def table_labels(summaries: list[dict[str, Any]]) -> list[str]:
+def table_labels(summaries: list[TaskSummary]) -> list[str]:
     """
     :param summaries: one per task
     :return: every algorithm label of the report, in order of appearance (an algorithm whose every run failed too)
     """
     labels: list[str] = []
     for summary in summaries:
-        labels += [label for label in summary["labels"] if label not in labels]
+        labels += [label for label in summary.labels if label not in labels]
     for summary in summaries:
-        for algo in [*summary["failed"], *summary.get("missing", {})]:
+        for algo in [*summary.failed, *summary.missing]:
             if not any(label_algo(label) == algo for label in labels):
                 labels.append(algo.upper())
     return labels
 
 
-def _mean_cell(entry: dict[str, Any] | None, key: str) -> str:
+def _mean_cell(entry: SeedValues | None) -> str:
     if entry is None:
         return "—"
-    n_seeds = len(entry[key])
-    return f"{entry['mean']:.1f} ± {entry['std']:.1f} ({n_seeds} seed{'s' if n_seeds > 1 else ''})"
+    n_seeds = len(entry.values)
+    return f"{entry.mean:.1f} ± {entry.std:.1f} ({n_seeds} seed{'s' if n_seeds > 1 else ''})"
 
 
-def _reach_cell(entry: dict[str, Any] | None) -> str:
+def _reach_cell(entry: ReachEntry | None) -> str:
     if entry is None:
         return "—"
-    per_seed = ", ".join(f"s{seed}: {'—' if step is None else step}" for seed, step in entry["per_seed"].items())
-    first = f"not by {entry['last_step']}" if entry["step"] is None else str(entry["step"])
+    per_seed = ", ".join(f"s{seed}: {'—' if step is None else step}" for seed, step in entry.per_seed.items())
+    first = f"not by {entry.last_step}" if entry.step is None else str(entry.step)
     return f"{first} ({per_seed})"
 
 
-def protocol_lines(summaries: list[dict[str, Any]]) -> list[str]:
+def protocol_lines(summaries: list[TaskSummary]) -> list[str]:
     """
     :param summaries: one per task
     :return: the Markdown of the paper-protocol table and (when a reference column ran) the steps-to-reach table
     """
     labels: list[str] = []
     for summary in summaries:
-        labels += [label for label in summary["paper_protocol"]["labels"] if label not in labels]
+        labels += [label for label in summary.paper_protocol.labels if label not in labels]
     lines: list[str] = []
     if labels:
-        window = summaries[0]["paper_protocol"]["window"]
+        window = summaries[0].paper_protocol.window
         lines += [
             "",
             f"## The paper's protocol: mean return of the training episodes that ended in the last {window} steps",
@@ -297,10 +424,10 @@ def protocol_lines(summaries: list[dict[str, Any]]) -> list[str]:
             "|---|---|" + "---|" * len(labels),
         ]
         for summary in summaries:
-            paper = summary["paper_protocol"]
-            cells = [_mean_cell(paper["labels"].get(label), "values") for label in labels]
-            lines.append(f"| {summary['env']} | {paper['step']} | " + " | ".join(cells) + " |")
-    reaching = [summary for summary in summaries if "reach" in summary]
+            protocol = summary.paper_protocol
+            cells = [_mean_cell(protocol.labels.get(label)) for label in labels]
+            lines.append(f"| {summary.env} | {protocol.step} | " + " | ".join(cells) + " |")
+    reaching = [(summary, summary.reach) for summary in summaries if summary.reach is not None]
     if reaching:
         lines += [
             "",
@@ -313,20 +440,19 @@ def protocol_lines(summaries: list[dict[str, Any]]) -> list[str]:
             "| task | column | evaluation: target | first step | paper's protocol: target | first step |",
             "|---|---|---|---|---|---|",
         ]
-        for summary in reaching:
-            reach = summary["reach"]
-            paper = reach.get("paper_protocol", {})
-            paper_target = f"{reach['paper_target']:.1f}" if "paper_target" in reach else "—"
-            columns = list(reach["evaluation"]) + [label for label in paper if label not in reach["evaluation"]]
+        for summary, reach in reaching:
+            paper_target = "—" if reach.paper_target is None else f"{reach.paper_target:.1f}"
+            columns = list(reach.evaluation) + [label for label in reach.paper_protocol if label not in reach.evaluation]
             for label in columns:
                 lines.append(
-                    f"| {summary['env']} | {label} | {reach['target']:.1f} ({reach['reference']}) | "
-                    f"{_reach_cell(reach['evaluation'].get(label))} | {paper_target} | {_reach_cell(paper.get(label))} |"
+                    f"| {summary.env} | {label} | {reach.target:.1f} ({reach.reference}) | "
+                    f"{_reach_cell(reach.evaluation.get(label))} | {paper_target} | "
+                    f"{_reach_cell(reach.paper_protocol.get(label))} |"
                 )
     return lines
 
 
-def write_paper_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> None:
+def write_paper_table(summaries: list[TaskSummary], budget: str, path: Path) -> None:
     """
     The paper suite's table, laid out as the paper's: one column per task under its paper name, one row per
     algorithm label, then the tasks' env ids and matched steps.
@@ -343,18 +469,18 @@ def write_paper_table(summaries: list[dict[str, Any]], budget: str, path: Path) 
         "matched step: the last evaluation step every run of the task reached. MPC: planning with the learned",
         "model; policy: the distilled policy network alone. Tasks as the paper names them (sb3_poplin.tasks.paper_suite).",
         "",
-        "| | " + " | ".join(summary["name"] for summary in summaries) + " |",
+        "| | " + " | ".join(summary.name for summary in summaries) + " |",
         "|---|" + "---|" * len(summaries),
     ]
     for label in labels:
         cells = [format_cell(summary, label, label_algo(label)) for summary in summaries]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    lines.append("| env id | " + " | ".join(f"`{summary['env']}`" for summary in summaries) + " |")
-    lines.append("| matched step | " + " | ".join(str(summary["matched_step"]) for summary in summaries) + " |")
+    lines.append("| env id | " + " | ".join(f"`{summary.env}`" for summary in summaries) + " |")
+    lines.append("| matched step | " + " | ".join(str(summary.matched_step) for summary in summaries) + " |")
     path.write_text("\n".join(lines + protocol_lines(summaries)) + "\n")
 
 
-def write_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> None:
+def write_table(summaries: list[TaskSummary], budget: str, path: Path) -> None:
     """
     :param summaries: one per task
     :param budget: ``"cpu"`` or ``"paper"``
@@ -373,7 +499,7 @@ def write_table(summaries: list[dict[str, Any]], budget: str, path: Path) -> Non
     ]
     for summary in summaries:
         cells = [format_cell(summary, label, label_algo(label)) for label in labels]
-        lines.append(f"| {summary['env']} | {summary['matched_step']} | " + " | ".join(cells) + " |")
+        lines.append(f"| {summary.env} | {summary.matched_step} | " + " | ".join(cells) + " |")
     path.write_text("\n".join(lines + protocol_lines(summaries)) + "\n")
 
 
@@ -448,10 +574,10 @@ def write_report(
         training = [episodes for result in finished if (episodes := load_training(result)) is not None]
         budget_step = min((result.job.n_timesteps for result in env_results), default=None)
         summary = summarize(env, curves, failed, expected, training, budget_step, window, reference, missing)
-        summary["name"] = (paper_names or {}).get(env, env)
+        summary.name = (paper_names or {}).get(env, env)
         summaries.append(summary)
         if curves:
-            title = env if summary["name"] == env else f"{summary['name']} ({env})"
+            title = env if summary.name == env else f"{summary.name} ({env})"
             plot_curves(title, curves, budget, output / f"curves_{env_name(env)}.png")
     table = output / "results.md"
     if paper_names:
@@ -460,6 +586,7 @@ def write_report(
         write_table(summaries, budget, table)
     runs = [{**asdict(result.job), "run_dir": result.run_dir, "returncode": result.returncode} for result in results]
     suite = "paper" if paper_names else "all"
-    report = {"budget": budget, "suite": suite, "reference": reference, "tasks": summaries, "runs": runs}
+    tasks = [summary.to_json() for summary in summaries]
+    report = {"budget": budget, "suite": suite, "reference": reference, "tasks": tasks, "runs": runs}
     (output / "results.json").write_text(json.dumps(report, indent=2))
     return table
