@@ -52,11 +52,8 @@ PATHS = ("batched", "members", "fused")
 PATH_ENV = "SB3_POPLIN_FORWARD_PATH"  # forces one of PATHS
 CACHE_ENV = "SB3_POPLIN_CACHE_DIR"  # where the chosen paths are kept (default: $XDG_CACHE_HOME/sb3_poplin)
 
-# Rows per member from which the path is chosen by timing (fewer: the batched matmuls). Below it the batched path won
-# on both hosts measured (1 thread, ``benchmarks/speed/planner_parts.py --parts 5``; 100-300 rows, members of 3 x 64,
-# 3 x 128 and 4 x 200): on an Intel Xeon without AMX it took 0.24-0.86x the fused forward's time, on one with AMX the
-# members path took 1.01-1.70x and the fused one 1.18-3.79x its time. A probe there would cost more than it saves, and
-# the tests' tiny models keep one path on every host.
+# Rows per member from which the path is chosen by timing; below it the batched matmuls run (a probe there would cost
+# more than it saves, and the tests' tiny models keep one path on every host): docs/results.md, "Planner speed".
 PROBE_MIN_ROWS = 320
 PROBE_ROUNDS = 5
 

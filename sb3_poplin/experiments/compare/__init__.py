@@ -53,9 +53,9 @@ and of the paper suite: ``--suite paper --algos poplin sac --seeds 0 -n 400 ...`
 
 from sb3_poplin.experiments.compare.cli import main, parse_args
 from sb3_poplin.experiments.compare.execution import execute, execution_order, run_local, run_ray
+from sb3_poplin.experiments.presets import BUDGETS
 from sb3_poplin.experiments.compare.jobs import (
     ALGOS,
-    BUDGETS,
     COMPLETE_FILE,
     PAPER_WINDOW,
     SHORT_EPISODE,

@@ -8,9 +8,9 @@ import sys
 from pathlib import Path
 
 from sb3_poplin.experiments.compare.execution import run_local, run_ray
+from sb3_poplin.experiments.presets import BUDGETS
 from sb3_poplin.experiments.compare.jobs import (
     ALGOS,
-    BUDGETS,
     PAPER_WINDOW,
     SHORT_EPISODE,
     SHORT_EPISODE_EVALUATIONS,

@@ -16,7 +16,7 @@ import gymnasium as gym
 import yaml
 
 from sb3_poplin.experiments.checkpoints import CHECKPOINT_FOLDER, latest_checkpoint
-from sb3_poplin.experiments.presets import HYPERPARAMS_DIR, PACKAGED_ALGOS
+from sb3_poplin.experiments.presets import PACKAGED_ALGOS, config_path, load_config
 from sb3_poplin.tasks.paper_suite import PAPER_TASKS
 from sb3_poplin.variants import DEFAULT_SETTINGS
 from sb3_poplin.variants import VARIANTS as VARIANT_TABLE
@@ -24,7 +24,6 @@ from sb3_poplin.variants import VARIANTS as VARIANT_TABLE
 # POPLIN variants run as the zoo algorithm "poplin" with ``policy`` set; "poplin" alone is the file's variant
 VARIANTS = tuple(VARIANT_TABLE)
 ALGOS = ("poplin", *VARIANTS, *(algo for algo in PACKAGED_ALGOS if algo != "poplin"))
-BUDGETS = ("cpu", "paper")
 SUITES = ("all", "paper")
 # files of a run directory sent back by a Ray task (for clusters without a shared file system)
 RUN_FILE_SUFFIXES = (".npz", ".yml", ".txt", ".csv", ".zip", ".json")
@@ -93,7 +92,9 @@ class CompareOptions:
 
     def poplin_conf(self) -> Path:
         """:return: POPLIN's hyperparameter file of the budget"""
-        return hyperparams_dir() / ("poplin_cpu.yml" if self.budget == "cpu" else "poplin.yml")
+        path = config_path("poplin", self.budget)
+        assert path is not None
+        return path
 
     @property
     def paper_names(self) -> dict[str, str]:
@@ -104,12 +105,7 @@ class CompareOptions:
         """:return: the gymnasium ids compared, in order"""
         if self.suite == "paper":
             return list(self.paper_names)
-        return list(self.envs) if self.envs else list(read_yaml(self.poplin_conf()))
-
-
-def hyperparams_dir() -> Path:
-    """The packaged ``sb3_poplin/hyperparams`` folder."""
-    return HYPERPARAMS_DIR
+        return list(self.envs) if self.envs else list(load_config(self.poplin_conf()))
 
 
 def paper_suite_envs(selected: list[str] | None) -> dict[str, str]:
@@ -134,16 +130,6 @@ def env_name(env: str) -> str:
     :return: the name rl-zoo3 gives it in its folders (``/`` becomes ``-``, as ``huggingface_sb3`` does)
     """
     return env.replace("/", "-")
-
-
-def read_yaml(path: Path) -> dict[str, Any]:
-    """
-    :param path: a YAML file
-    :return: its mapping (empty when it holds none)
-    """
-    with open(path) as file:
-        content = yaml.safe_load(file)
-    return content if isinstance(content, dict) else {}
 
 
 def parse_value(text: str) -> Any:
@@ -228,7 +214,7 @@ class Job:
         for setting in self.params:
             if setting.startswith("policy:"):
                 return str(parse_value(setting.split(":", 1)[1]))
-        entry = read_yaml(Path(self.conf_file)).get(self.env, {}) if self.conf_file else {}
+        entry = load_config(self.conf_file).get(self.env, {}) if self.conf_file else {}
         return str(entry.get("policy", self.algo))
 
     @property
@@ -384,14 +370,13 @@ def algo_settings(
     MuJoCo settings (5000-10000 steps) do with CPU budgets, starts learning after a tenth of it instead, unless
     ``--params`` sets it or ``--keep-learning-starts`` is given. A run trained longer (``--steps-scale``) takes the
     same warm-up as at the matched budget: its first ``n_timesteps`` steps are the matched run's, so the main table's
-    column at the matched step is not a run still in its warm-up (SAC on PETSCheetah with the zoo's 10 000 random
-    steps scored -61 at 15 000 steps, and 3497 at 45 000).
+    column at the matched step is not a run still in its warm-up.
 
     :return: the ``--conf-file`` (``None``: the zoo's own) and the ``-params`` overrides
     """
     is_poplin = algo == "poplin" or algo in VARIANTS
-    conf: Path | None = poplin_conf if is_poplin else hyperparams_dir() / f"{algo}.yml"
-    entry = read_yaml(conf).get(env) if conf is not None and conf.is_file() else None
+    conf = poplin_conf if is_poplin else config_path(algo)
+    entry = load_config(conf).get(env) if conf is not None else None
     if entry is None and is_poplin:
         raise SystemExit(f"{env} has no entry in {poplin_conf}.")
     if entry is None:
@@ -448,7 +433,7 @@ def plan_jobs(options: CompareOptions) -> list[Job]:
     :return: one job per algorithm x task x seed, with matched budgets and evaluation settings
     """
     poplin_conf = options.poplin_conf()
-    poplin_config = read_yaml(poplin_conf)
+    poplin_config = load_config(poplin_conf)
     params: dict[str, list[str]] = {}
     for item in options.params:
         algo, _, setting = item.partition(":")
