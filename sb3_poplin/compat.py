@@ -1,11 +1,11 @@
 """
 Zips of earlier releases: everything ``POPLIN.load`` does for them, in one place.
 
-The policy (also in docs/usage.md, "Saving, loading and resuming"): a zip of a published release (0.1.0, 0.2.0, 0.3.0) loads,
-predicts and continues training as it did under that release, until 1.0.0; zips of the development numbers 0.4.0 to
-0.4.2 (never published; the project's own benchmark agents are of them) load the same way, until 0.6.0. A zip of 0.5.0
-or later needs nothing from this module. Each shim below names the zips it serves and the release that removes it;
-``tests/test_save_load.py`` runs every zip listed in ``tests/data/manifest.json`` through them.
+The policy (also in docs/usage.md, "Saving, loading and resuming"): a zip of a published release (0.1.0, 0.2.0,
+0.3.0, 0.5.0) loads, predicts and continues training as it did under that release, until 1.0.0; zips of the development
+numbers 0.4.0 to 0.4.2 (never published; the project's own benchmark agents are of them) load the same way, until
+0.6.0. A zip of 0.5.0 or later needs nothing from this module. Each shim below names the zips it serves and the release
+that removes it; ``tests/test_save_load.py`` runs every zip listed in ``tests/data/manifest.json`` through them.
 """
 
 from __future__ import annotations
