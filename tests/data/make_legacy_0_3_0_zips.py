@@ -14,6 +14,9 @@ directory, comes first on ``sys.path``, so the checkout on ``PYTHONPATH`` is imp
     PYTHONPATH=/tmp/sb3p041 python tests/data/make_legacy_0_3_0_zips.py tests/data 0.4.1 Swimmer-v5
     # PETSCheetah with 0.4.2 (the code of the issue-45 headline runs, the last release without a hooks record): 6f0e1cf
     PYTHONPATH=/tmp/sb3p042 python tests/data/make_legacy_0_3_0_zips.py tests/data 0.4.2 sb3_poplin/PETSCheetah-v0
+    # the published 0.5.0 (the first release whose zips record their hooks), on both cheetahs: commit 2778ed6
+    PYTHONPATH=/tmp/sb3p050 python tests/data/make_legacy_0_3_0_zips.py tests/data 0.5.0 HalfCheetah-v5
+    PYTHONPATH=/tmp/sb3p050 python tests/data/make_legacy_0_3_0_zips.py tests/data 0.5.0 sb3_poplin/PETSCheetah-v0
 
 It writes ``legacy-<release>-<variant>-<task>.zip`` (task: ``half-cheetah``, ``swimmer``) for PETS and POPLIN-P
 (tiny agents: one random episode, one model fit and distillation, a few planned steps; under 100 KB each) and
