@@ -199,6 +199,24 @@ def test_compare_reports_the_paper_protocol_and_steps_to_reach(tmp_path: Path) -
     text = table.read_text()
     assert "| Pendulum-v1 | 3000 | -173.3 ± 26.7 (2 seeds) | -310.0 ± 10.0 (2 seeds) |" in text
     assert "| Pendulum-v1 | SAC | 20.0 (PETS (MPC)) | 7000 (s0: 6000, s1: 7000) | -173.3 | 7000 (s0: 6000, s1: 7000) |" in text
+    # the paper's protocol along training (--protocol-steps): the window means by hand; PETS ended at 3000
+    assert compare_module.parse_args([*common, "--protocol-steps", "3000", "6000", "9000"]).protocol_steps == [
+        3000,
+        6000,
+        9000,
+    ]
+    steps = [3000, 6000, 9000]
+    table = compare_module.write_report(results, options.tasks(), "cpu", tmp_path / "along", protocol_steps=steps)
+    task = json.loads((tmp_path / "along" / "results.json").read_text())["tasks"][0]
+    along = {entry["step"]: entry["labels"] for entry in task["paper_protocol_at"]}
+    assert along[3000]["PETS"]["values"] == pytest.approx([-200, -440 / 3])
+    assert along[6000]["SAC"]["values"] == pytest.approx([-150, -200]) and "PETS" not in along[6000]
+    assert along[9000]["SAC"] == {"seeds": [0, 1], "values": [0.0, -80.0], "mean": -40.0, "std": 40.0}
+    text = table.read_text()
+    assert "| Pendulum-v1 | 6000 | — | -175.0 ± 25.0 (s0: -150, s1: -200) |" in text
+    assert "| Pendulum-v1 | 9000 | — | -40.0 ± 40.0 (s0: 0, s1: -80) |" in text
+    with pytest.raises(SystemExit):
+        compare_module.parse_args([*common, "--protocol-steps", "0"])
     # a run folder without the marker and without the model zip is an unfinished run
     for path in tmp_path.glob(f"*/*/{compare_module.COMPLETE_FILE}"):
         path.unlink()

@@ -85,6 +85,13 @@ def parse_args(argv: list[str] | None = None) -> CompareOptions:
         default="POPLIN-P (MPC)",
         help="the column whose final return the others must reach (steps-to-reach table; default 'POPLIN-P (MPC)')",
     )
+    parser.add_argument(
+        "--protocol-steps",
+        type=int,
+        nargs="+",
+        default=[],
+        help="also report the paper's protocol at these steps (e.g. 15000 25000 35000 50000), each seed's value too",
+    )
     parser.add_argument("--log-folder", help="rl-zoo3 log folder (default: logs/compare-<budget>)")
     parser.add_argument("--output", help="report folder (default: <log folder>/report)")
     parser.add_argument("--python", default=sys.executable, help="interpreter of the runs (default: this one)")
@@ -100,6 +107,8 @@ def parse_args(argv: list[str] | None = None) -> CompareOptions:
         parser.error("--eval-episodes must be >= 2 (rl-zoo3's all_plots needs it)")
     if options.jobs < 1 or options.n_evals < 1 or options.paper_window < 1:
         parser.error("--jobs, --n-evals and --paper-window must be >= 1")
+    if any(step < 1 for step in options.protocol_steps):
+        parser.error("--protocol-steps takes environment steps >= 1")
     if options.policy_eval_freq is not None and options.policy_eval_freq < 1:
         parser.error("--policy-eval-freq must be >= 1")
     return CompareOptions(**vars(options))
@@ -126,7 +135,14 @@ def main(argv: list[str] | None = None) -> int:
         results = run_local(jobs, options.jobs, options.force)
     output = Path(options.output or os.path.join(jobs[0].log_folder if jobs else ".", "report"))
     table = write_report(
-        results, options.tasks(), options.budget, output, options.paper_names, options.paper_window, options.reference
+        results,
+        options.tasks(),
+        options.budget,
+        output,
+        options.paper_names,
+        options.paper_window,
+        options.reference,
+        options.protocol_steps,
     )
     print(table.read_text())
     print(f"Report: {output}")

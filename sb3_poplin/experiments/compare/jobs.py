@@ -59,6 +59,7 @@ class CompareOptions:
     :param steps_scale: ``ALGO:FACTOR``: train ALGO FACTOR times the task's budget
     :param paper_window: the paper's protocol: training episodes of the last N steps
     :param reference: the column the steps-to-reach table measures against
+    :param protocol_steps: more steps to report the paper's protocol at (empty: the task's budget only)
     :param log_folder: rl-zoo3's log folder (``None``: ``logs/compare-<budget>``)
     :param output: the report folder (``None``: ``<log folder>/report``)
     :param python: the runs' interpreter
@@ -83,6 +84,7 @@ class CompareOptions:
     steps_scale: list[str] = field(default_factory=list)
     paper_window: int = PAPER_WINDOW
     reference: str = "POPLIN-P (MPC)"
+    protocol_steps: list[int] = field(default_factory=list)
     log_folder: str | None = None
     output: str | None = None
     python: str = sys.executable

@@ -227,6 +227,7 @@ class TaskSummary:
     :param paper_protocol: the paper's protocol
     :param reach: the steps to reach the reference's final return (``None``: no reference column ran)
     :param name: the task's name in the tables (the paper's, in the paper suite)
+    :param protocol_at: the paper's protocol at more steps (``--protocol-steps``), in order
     """
 
     env: str
@@ -238,6 +239,7 @@ class TaskSummary:
     paper_protocol: ProtocolSummary
     reach: Reach | None = None
     name: str = ""
+    protocol_at: list[ProtocolSummary] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.name = self.name or self.env
@@ -256,6 +258,8 @@ class TaskSummary:
         if self.reach is not None:
             entry["reach"] = self.reach.to_json()
         entry["name"] = self.name
+        if self.protocol_at:
+            entry["paper_protocol_at"] = [protocol.to_json() for protocol in self.protocol_at]
         return entry
 
 
@@ -286,6 +290,23 @@ def value_at(curve: Curve, step: int) -> float:
     return float(curve.returns[max(index, 0)])
 
 
+def paper_protocol(training: list[TrainingEpisodes], step: int | None, window: int) -> ProtocolSummary:
+    """
+    :param training: the task's training episodes (one per run)
+    :param step: the protocol's step (``None``: an empty summary)
+    :param window: steps
+    :return: each algorithm's mean return of the training episodes that ended in ``(step - window, step]``, per seed
+        (a run with no episode there is left out)
+    """
+    protocol = ProtocolSummary(step, window)
+    if step is not None:
+        for episodes in training:
+            value = episodes.window_mean(step, window)
+            if not np.isnan(value):
+                protocol.labels.setdefault(episodes.label, SeedValues()).add(episodes.seed, value)
+    return protocol
+
+
 def summarize(
     env: str,
     curves: list[Curve],
@@ -296,6 +317,7 @@ def summarize(
     window: int = PAPER_WINDOW,
     reference: str | None = None,
     missing: dict[str, int] | None = None,
+    protocol_steps: list[int] | None = None,
 ) -> TaskSummary:
     """
     Final returns of one task at the matched step (the last evaluation step every run reached), by the paper's
@@ -310,19 +332,16 @@ def summarize(
     :param window: the paper's protocol averages the training episodes that ended in the last ``window`` steps
     :param reference: the column whose final return the others must reach (``None`` or absent: no reach table)
     :param missing: algorithm -> runs not found and not started (``--report-only``)
+    :param protocol_steps: more steps to apply the paper's protocol at (a learning curve by the paper's measure)
     """
     matched = int(min(curve.timesteps[-1] for curve in curves)) if curves else 0
     labels: dict[str, SeedValues] = {}
     for curve in curves:
         labels.setdefault(curve.label, SeedValues()).add(curve.seed, value_at(curve, matched))
     training = training or []
-    protocol = ProtocolSummary(budget_step, window)
-    if budget_step is not None:
-        for episodes in training:
-            value = episodes.window_mean(budget_step, window)
-            if not np.isnan(value):
-                protocol.labels.setdefault(episodes.label, SeedValues()).add(episodes.seed, value)
+    protocol = paper_protocol(training, budget_step, window)
     summary = TaskSummary(env, matched, labels, failed, expected, dict(missing or {}), protocol)
+    summary.protocol_at = [paper_protocol(training, step, window) for step in protocol_steps or []]
     if reference is None or reference not in labels:
         return summary
     reach = Reach(reference, labels[reference].mean)
@@ -394,6 +413,13 @@ def _mean_cell(entry: SeedValues | None) -> str:
     return f"{entry.mean:.1f} ± {entry.std:.1f} ({n_seeds} seed{'s' if n_seeds > 1 else ''})"
 
 
+def _seeds_cell(entry: SeedValues | None) -> str:
+    if entry is None:
+        return "—"
+    values = ", ".join(f"s{seed}: {value:.0f}" for seed, value in zip(entry.seeds, entry.values, strict=True))
+    return f"{entry.mean:.1f} ± {entry.std:.1f} ({values})"
+
+
 def _reach_cell(entry: ReachEntry | None) -> str:
     if entry is None:
         return "—"
@@ -427,6 +453,24 @@ def protocol_lines(summaries: list[TaskSummary]) -> list[str]:
             protocol = summary.paper_protocol
             cells = [_mean_cell(protocol.labels.get(label)) for label in labels]
             lines.append(f"| {summary.env} | {protocol.step} | " + " | ".join(cells) + " |")
+    if any(summary.protocol_at for summary in summaries):
+        at_labels: list[str] = []
+        for summary in summaries:
+            for protocol in summary.protocol_at:
+                at_labels += [label for label in protocol.labels if label not in at_labels]
+        lines += [
+            "",
+            "## The paper's protocol along training",
+            "",
+            "The same measure at each step (`--protocol-steps`): mean ± std over seeds, then each seed's value.",
+            "",
+            "| task | step | " + " | ".join(at_labels) + " |",
+            "|---|---|" + "---|" * len(at_labels),
+        ]
+        for summary in summaries:
+            for protocol in summary.protocol_at:
+                cells = [_seeds_cell(protocol.labels.get(label)) for label in at_labels]
+                lines.append(f"| {summary.env} | {protocol.step} | " + " | ".join(cells) + " |")
     reaching = [(summary, summary.reach) for summary in summaries if summary.reach is not None]
     if reaching:
         lines += [
@@ -544,6 +588,7 @@ def write_report(
     paper_names: dict[str, str] | None = None,
     window: int = PAPER_WINDOW,
     reference: str | None = "POPLIN-P (MPC)",
+    protocol_steps: list[int] | None = None,
 ) -> Path:
     """
     Write ``results.md``, ``results.json`` and one ``curves_<task>.png`` per task.
@@ -555,6 +600,7 @@ def write_report(
     :param paper_names: env id -> the paper's task name, for the paper suite's table (``None``: one row per task)
     :param window: steps of the paper's protocol
     :param reference: the column whose final return the others must reach
+    :param protocol_steps: more steps to apply the paper's protocol at
     :return: the table's path
     """
     output.mkdir(parents=True, exist_ok=True)
@@ -573,7 +619,7 @@ def write_report(
         finished = [result for result in env_results if result.run_dir is not None]
         training = [episodes for result in finished if (episodes := load_training(result)) is not None]
         budget_step = min((result.job.n_timesteps for result in env_results), default=None)
-        summary = summarize(env, curves, failed, expected, training, budget_step, window, reference, missing)
+        summary = summarize(env, curves, failed, expected, training, budget_step, window, reference, missing, protocol_steps)
         summary.name = (paper_names or {}).get(env, env)
         summaries.append(summary)
         if curves:
