@@ -212,6 +212,11 @@ def test_compare_reports_the_paper_protocol_and_steps_to_reach(tmp_path: Path) -
     assert along[3000]["PETS"]["values"] == pytest.approx([-200, -440 / 3])
     assert along[6000]["SAC"]["values"] == pytest.approx([-150, -200]) and "PETS" not in along[6000]
     assert along[9000]["SAC"] == {"seeds": [0, 1], "values": [0.0, -80.0], "mean": -40.0, "std": 40.0}
+    # the training figure's thick line: the mean over seeds of the window means (SAC at 6000: -150 and -200)
+    sac = [compare_module.load_training(result) for result in results if result.job.algo == "sac"]
+    curve = compare_module.training_curve(sac, np.array([1000, 6000, 9000]), 3000)
+    assert curve == pytest.approx([(-350 - 360) / 2, -175, -40])
+    assert (tmp_path / "along" / "training_Pendulum-v1.png").stat().st_size > 0
     text = table.read_text()
     assert "| Pendulum-v1 | 6000 | — | -175.0 ± 25.0 (s0: -150, s1: -200) |" in text
     assert "| Pendulum-v1 | 9000 | — | -40.0 ± 40.0 (s0: 0, s1: -80) |" in text

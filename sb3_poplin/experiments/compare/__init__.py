@@ -22,7 +22,8 @@ nothing recorded twice or lost. Runs that cannot continue exactly (on-policy alg
 
 The report (``--output``) has ``results.md``, a Markdown table of the final evaluation return (mean ± std
 over seeds) at the step every algorithm of the task reached, ``results.json`` with the numbers, and
-``curves_<task>.png``, one learning-curve figure per task (``/`` in an id becomes ``-``). POPLIN-A/P runs
+``curves_<task>.png``, one learning-curve figure per task (``/`` in an id becomes ``-``), and ``training_<task>.png``,
+its training episodes as the paper plots them. POPLIN-A/P runs
 are reported twice: MPC (``evaluations.npz``) and policy control (``evaluations_policy.npz``).
 
 ``--suite paper`` runs the POPLIN paper's 13 tasks (``sb3_poplin/tasks/paper_suite.py``: Cheetah, Ant, ...,
@@ -84,7 +85,9 @@ from sb3_poplin.experiments.compare.report import (
     TrainingEpisodes,
     format_cell,
     label_algo,
+    load_training,
     summarize,
+    training_curve,
     write_report,
 )
 
@@ -117,6 +120,7 @@ __all__ = [
     "is_complete",
     "job_runs",
     "label_algo",
+    "load_training",
     "main",
     "parse_args",
     "parse_value",
@@ -124,5 +128,6 @@ __all__ = [
     "run_local",
     "run_ray",
     "summarize",
+    "training_curve",
     "write_report",
 ]

@@ -580,6 +580,52 @@ def plot_curves(env: str, curves: list[Curve], budget: str, path: Path) -> None:
     plt.close(figure)
 
 
+def training_curve(runs: list[TrainingEpisodes], steps: np.ndarray, window: int) -> np.ndarray:
+    """
+    :param runs: one label's training episodes, one per seed
+    :param steps: environment steps
+    :param window: steps
+    :return: at each step, the mean over seeds of the paper's measure (the mean return of the training episodes that
+        ended in the last ``window`` steps); ``nan`` where a seed had none
+    """
+    return np.array([np.mean([run.window_mean(int(step), window) for run in runs]) for step in steps])
+
+
+def plot_training(env: str, training: list[TrainingEpisodes], budget: str, window: int, path: Path) -> None:
+    """
+    Plot one task's training episodes, as the paper plots its curves: each seed's episode returns (thin) and, per
+    label, the mean over seeds of the paper's measure at every episode end (thick).
+
+    :param env: the task's title
+    :param training: the task's training episodes (one per run)
+    :param budget: ``"cpu"`` or ``"paper"``
+    :param window: the paper's window in steps
+    :param path: the PNG file to write
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(6.4, 4.4))
+    for index, label in enumerate(dict.fromkeys(episodes.label for episodes in training)):
+        runs = [episodes for episodes in training if episodes.label == label]
+        color = f"C{index}"
+        for run in runs:
+            axis.plot(run.end_steps, run.returns, color=color, alpha=0.25, linewidth=0.8)
+        steps = np.unique(np.concatenate([run.end_steps for run in runs]))
+        mean = training_curve(runs, steps, window)
+        axis.plot(steps, mean, color=color, linewidth=2, label=f"{label} ({len(runs)} seeds; thick: last {window} steps)")
+    axis.set_title(f"{env}: training episodes ({budget} budget)")
+    axis.set_xlabel("environment steps")
+    axis.set_ylabel("training episode return")
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
 def write_report(
     results: list[JobResult],
     envs: list[str],
@@ -591,7 +637,8 @@ def write_report(
     protocol_steps: list[int] | None = None,
 ) -> Path:
     """
-    Write ``results.md``, ``results.json`` and one ``curves_<task>.png`` per task.
+    Write ``results.md``, ``results.json``, one ``curves_<task>.png`` (evaluations) and one ``training_<task>.png``
+    (training episodes) per task.
 
     :param results: every job's result
     :param envs: the tasks, in table order
@@ -625,6 +672,9 @@ def write_report(
         if curves:
             title = env if summary.name == env else f"{summary.name} ({env})"
             plot_curves(title, curves, budget, output / f"curves_{env_name(env)}.png")
+        if training:
+            title = env if summary.name == env else f"{summary.name} ({env})"
+            plot_training(title, training, budget, window, output / f"training_{env_name(env)}.png")
     table = output / "results.md"
     if paper_names:
         write_paper_table(summaries, budget, table)
