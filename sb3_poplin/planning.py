@@ -968,8 +968,9 @@ def plan_flops(
     """
     FLOPs of one plan, counted while it runs: its matrix products (the networks' layers, CEM's refit to the elites and
     colored noise; 2 per multiply-add, element-wise work neglected) under :class:`torch.utils.flop_counter.FlopCounterMode`.
-    It counts what the planner really does (iCEM's decayed populations and kept elites, POPLIN-A Init's open-loop
-    proposals, the executed and fallback actions), so a speed benchmark's fraction of peak is that of the plan it timed.
+    It counts what the planner really does (iCEM's decayed populations and extra candidates, POPLIN-A Init's open-loop
+    proposals, the executed and fallback actions; POPLIN-P's perturbed layers of one particle are two products,
+    ``x theta + x omega``), so a speed benchmark's fraction of peak is that of the plan it timed.
 
     :param planner: the planner
     :param obs: real observations ``[n_envs, o]`` (on the planner's device)

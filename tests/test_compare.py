@@ -205,12 +205,14 @@ def test_compare_reports_the_paper_protocol_and_steps_to_reach(tmp_path: Path) -
         6000,
         9000,
     ]
-    steps = [3000, 6000, 9000]
+    steps = [3000, 4000, 6000, 9000]
     table = compare_module.write_report(results, options.tasks(), "cpu", tmp_path / "along", protocol_steps=steps)
     task = json.loads((tmp_path / "along" / "results.json").read_text())["tasks"][0]
     along = {entry["step"]: entry["labels"] for entry in task["paper_protocol_at"]}
     assert along[3000]["PETS"]["values"] == pytest.approx([-200, -440 / 3])
     assert along[6000]["SAC"]["values"] == pytest.approx([-150, -200]) and "PETS" not in along[6000]
+    # past the end of PETS's runs (3000 steps) they have no value, though their last episodes are in the window
+    assert along[4000]["SAC"]["values"] == pytest.approx([-250, -280]) and "PETS" not in along[4000]
     assert along[9000]["SAC"] == {"seeds": [0, 1], "values": [0.0, -80.0], "mean": -40.0, "std": 40.0}
     # the training figure's thick line: the mean over seeds of the window means (SAC at 6000: -150 and -200)
     sac = [compare_module.load_training(result) for result in results if result.job.algo == "sac"]

@@ -302,6 +302,24 @@ def test_plan_flops_count_the_products_of_one_real_plan(kwargs):
     assert plan_flops(model.planner, obs) == analytic_plan_flops(model, n_envs=2) > 0
 
 
+def test_plan_flops_leave_out_the_forward_path_probe(monkeypatch, tmp_path):
+    """A host's first forward of a size times the paths (a probe): that work is not the plan's, and is not counted."""
+    from conftest import TINY
+
+    from sb3_poplin import POPLIN
+    from sb3_poplin.planning import plan_flops
+
+    monkeypatch.delenv(kernels.PATH_ENV, raising=False)
+    monkeypatch.setenv(kernels.CACHE_ENV, str(tmp_path))
+    monkeypatch.setattr(kernels, "PROBE_MIN_ROWS", 1)  # the tiny model's forwards are probed too
+    monkeypatch.setattr(kernels.PathChoice, "chosen", {})
+    monkeypatch.setattr(kernels.PathChoice, "loaded", False)
+    model = POPLIN(env="Pendulum-v1", seed=0, **{**TINY, "dynamics_net_arch": (16, 24), "policy": "pets"})
+    obs = th.tensor([[0.3, 0.95, -1.0]])
+    assert plan_flops(model.planner, obs) == analytic_plan_flops(model, n_envs=1)
+    assert kernels.PathChoice.chosen  # the probe ran (in the uncounted plan)
+
+
 @pytest.mark.parametrize("path", kernels.PATHS)
 def test_plan_flops_on_every_forward_path(path, monkeypatch):
     """Each of the ensemble's forward paths (oneDNN's fused linear too) is counted, and the count does not depend on it."""

@@ -8,7 +8,7 @@ Paper setting: HalfCheetah-v5 sizes, population 500, horizon 30, 5 CEM iteration
 5-member 4x200 ensemble; expectation propagation and 20-particle TS-infinity; PETS, POPLIN-A (init)
 and POPLIN-P (sep, [32] policy); fp32 and bf16. FLOPs are the matrix products torch counts during one plan
 (``sb3_poplin.planning.plan_flops``: 2 per multiply-add, biases and activations not counted; POPLIN-P's perturbed
-layers are two products, x theta + x omega; rows before 2026-12-07 counted one, from the layer shapes).
+layers of one particle are two products, x theta + x omega; rows before 2026-12-07 counted one, from the shapes).
 ``--envs N`` plans N envs in one batch (rows marked "N envs"; the FLOPs and each product's rows scale with N).
 The ratios (POPLIN-P/PETS, bf16 speed-ups) come from interleaved rounds, one plan per configuration in turn, so that
 the drift of a shared machine affects both sides of a ratio alike. ``--device cuda`` plans on the GPU (the matmul

@@ -71,19 +71,24 @@ class TrainingEpisodes:
     :param seed: the run's seed
     :param end_steps: the environment step at which each episode ended
     :param returns: each episode's return
+    :param n_timesteps: the steps the run trained (``None``: unknown)
     """
 
     label: str
     seed: int
     end_steps: np.ndarray
     returns: np.ndarray
+    n_timesteps: int | None = None
 
     def window_mean(self, step: int, window: int) -> float:
         """
         :param step: environment step
         :param window: steps
-        :return: the mean return of the episodes that ended in ``(step - window, step]`` (``nan`` when none did)
+        :return: the mean return of the episodes that ended in ``(step - window, step]`` (``nan`` when none did, or
+            when ``step`` is past the run's ``n_timesteps``: a run that stopped has no value there)
         """
+        if self.n_timesteps is not None and step > self.n_timesteps:
+            return float("nan")
         inside = (self.end_steps > step - window) & (self.end_steps <= step)
         return float(self.returns[inside].mean()) if inside.any() else float("nan")
 
@@ -104,7 +109,7 @@ def load_training(result: JobResult) -> TrainingEpisodes | None:
         return None
     rows.sort(key=lambda row: row[2])
     returns, lengths, _ = (np.asarray(column, dtype=float) for column in zip(*rows, strict=True))
-    return TrainingEpisodes(job.column.upper(), job.seed, np.cumsum(lengths).astype(int), returns)
+    return TrainingEpisodes(job.column.upper(), job.seed, np.cumsum(lengths).astype(int), returns, job.n_timesteps)
 
 
 def first_step_reaching(steps: np.ndarray, values: np.ndarray, target: float) -> int | None:
@@ -586,7 +591,7 @@ def training_curve(runs: list[TrainingEpisodes], steps: np.ndarray, window: int)
     :param steps: environment steps
     :param window: steps
     :return: at each step, the mean over seeds of the paper's measure (the mean return of the training episodes that
-        ended in the last ``window`` steps); ``nan`` where a seed had none
+        ended in the last ``window`` steps); ``nan`` where a seed had none (also past the end of a seed's run)
     """
     return np.array([np.mean([run.window_mean(int(step), window) for run in runs]) for step in steps])
 
