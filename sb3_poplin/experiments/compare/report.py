@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -433,49 +434,40 @@ def _reach_cell(entry: ReachEntry | None) -> str:
     return f"{first} ({per_seed})"
 
 
+def _protocol_table(
+    title: str, intro: list[str], rows: list[tuple[str, ProtocolSummary]], cell: Callable[[SeedValues | None], str]
+) -> list[str]:
+    """The Markdown of one paper-protocol table: a row per (task, protocol), a column per algorithm label."""
+    labels: list[str] = []
+    for _, protocol in rows:
+        labels += [label for label in protocol.labels if label not in labels]
+    header = ["| task | step | " + " | ".join(labels) + " |", "|---|---|" + "---|" * len(labels)]
+    lines = ["", f"## {title}", "", *intro, "", *header]
+    for env, protocol in rows:
+        cells = [cell(protocol.labels.get(label)) for label in labels]
+        lines.append(f"| {env} | {protocol.step} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def protocol_lines(summaries: list[TaskSummary]) -> list[str]:
     """
     :param summaries: one per task
     :return: the Markdown of the paper-protocol table and (when a reference column ran) the steps-to-reach table
     """
-    labels: list[str] = []
-    for summary in summaries:
-        labels += [label for label in summary.paper_protocol.labels if label not in labels]
     lines: list[str] = []
-    if labels:
+    at_budget = [(summary.env, summary.paper_protocol) for summary in summaries]
+    if any(protocol.labels for _, protocol in at_budget):
         window = summaries[0].paper_protocol.window
-        lines += [
-            "",
-            f"## The paper's protocol: mean return of the training episodes that ended in the last {window} steps",
-            "",
+        title = f"The paper's protocol: mean return of the training episodes that ended in the last {window} steps"
+        intro = [
             "Mean ± std over seeds, at the task's smallest budget (the step column). Training episodes: what each",
             "algorithm did while learning (POPLIN: MPC), as the paper reports.",
-            "",
-            "| task | step | " + " | ".join(labels) + " |",
-            "|---|---|" + "---|" * len(labels),
         ]
-        for summary in summaries:
-            protocol = summary.paper_protocol
-            cells = [_mean_cell(protocol.labels.get(label)) for label in labels]
-            lines.append(f"| {summary.env} | {protocol.step} | " + " | ".join(cells) + " |")
-    if any(summary.protocol_at for summary in summaries):
-        at_labels: list[str] = []
-        for summary in summaries:
-            for protocol in summary.protocol_at:
-                at_labels += [label for label in protocol.labels if label not in at_labels]
-        lines += [
-            "",
-            "## The paper's protocol along training",
-            "",
-            "The same measure at each step (`--protocol-steps`): mean ± std over seeds, then each seed's value.",
-            "",
-            "| task | step | " + " | ".join(at_labels) + " |",
-            "|---|---|" + "---|" * len(at_labels),
-        ]
-        for summary in summaries:
-            for protocol in summary.protocol_at:
-                cells = [_seeds_cell(protocol.labels.get(label)) for label in at_labels]
-                lines.append(f"| {summary.env} | {protocol.step} | " + " | ".join(cells) + " |")
+        lines += _protocol_table(title, intro, at_budget, _mean_cell)
+    along = [(summary.env, protocol) for summary in summaries for protocol in summary.protocol_at]
+    if along:
+        intro = ["The same measure at each step (`--protocol-steps`): mean ± std over seeds, then each seed's value."]
+        lines += _protocol_table("The paper's protocol along training", intro, along, _seeds_cell)
     reaching = [(summary, summary.reach) for summary in summaries if summary.reach is not None]
     if reaching:
         lines += [
@@ -552,6 +544,30 @@ def write_table(summaries: list[TaskSummary], budget: str, path: Path) -> None:
     path.write_text("\n".join(lines + protocol_lines(summaries)) + "\n")
 
 
+def _new_figure() -> tuple[Any, Any]:
+    """A figure and its axes, drawn off screen (matplotlib is imported only when a report draws)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    return plt.subplots(figsize=(6.4, 4.4))
+
+
+def _save_figure(figure: Any, axis: Any, title: str, ylabel: str, path: Path) -> None:
+    """Title, axes labels, grid and legend of a learning-curve figure; write it to ``path`` and close it."""
+    from matplotlib import pyplot as plt
+
+    axis.set_title(title)
+    axis.set_xlabel("environment steps")
+    axis.set_ylabel(ylabel)
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
 def plot_curves(env: str, curves: list[Curve], budget: str, path: Path) -> None:
     """
     Plot one task's learning curves: mean over seeds with a ± std band, one line per label.
@@ -561,12 +577,7 @@ def plot_curves(env: str, curves: list[Curve], budget: str, path: Path) -> None:
     :param budget: ``"cpu"`` or ``"paper"``
     :param path: the PNG file to write
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib import pyplot as plt
-
-    figure, axis = plt.subplots(figsize=(6.4, 4.4))
+    figure, axis = _new_figure()
     for label in dict.fromkeys(curve.label for curve in curves):
         runs = [curve for curve in curves if curve.label == label]
         length = min(len(curve.timesteps) for curve in runs)
@@ -575,14 +586,7 @@ def plot_curves(env: str, curves: list[Curve], budget: str, path: Path) -> None:
         mean, std = values.mean(axis=0), values.std(axis=0)
         axis.plot(steps, mean, label=f"{label} ({len(runs)} seeds)", linewidth=2)
         axis.fill_between(steps, mean - std, mean + std, alpha=0.2)
-    axis.set_title(f"{env} ({budget} budget)")
-    axis.set_xlabel("environment steps")
-    axis.set_ylabel("evaluation return (mean ± std over seeds)")
-    axis.grid(alpha=0.3)
-    axis.legend(fontsize=8)
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
+    _save_figure(figure, axis, f"{env} ({budget} budget)", "evaluation return (mean ± std over seeds)", path)
 
 
 def training_curve(runs: list[TrainingEpisodes], steps: np.ndarray, window: int) -> np.ndarray:
@@ -607,12 +611,7 @@ def plot_training(env: str, training: list[TrainingEpisodes], budget: str, windo
     :param window: the paper's window in steps
     :param path: the PNG file to write
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib import pyplot as plt
-
-    figure, axis = plt.subplots(figsize=(6.4, 4.4))
+    figure, axis = _new_figure()
     for index, label in enumerate(dict.fromkeys(episodes.label for episodes in training)):
         runs = [episodes for episodes in training if episodes.label == label]
         color = f"C{index}"
@@ -621,14 +620,7 @@ def plot_training(env: str, training: list[TrainingEpisodes], budget: str, windo
         steps = np.unique(np.concatenate([run.end_steps for run in runs]))
         mean = training_curve(runs, steps, window)
         axis.plot(steps, mean, color=color, linewidth=2, label=f"{label} ({len(runs)} seeds; thick: last {window} steps)")
-    axis.set_title(f"{env}: training episodes ({budget} budget)")
-    axis.set_xlabel("environment steps")
-    axis.set_ylabel("training episode return")
-    axis.grid(alpha=0.3)
-    axis.legend(fontsize=8)
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
+    _save_figure(figure, axis, f"{env}: training episodes ({budget} budget)", "training episode return", path)
 
 
 def write_report(
