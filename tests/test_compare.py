@@ -259,6 +259,42 @@ def test_report_only_labels_runs_not_made_yet_missing_and_not_failed(
     assert compare_module.format_cell(summary, "PETS (MPC)", job.column) == "missing (1/1)"
 
 
+def test_report_only_includes_unfinished_runs_as_far_as_they_got(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Seeds 0-1 finished at 2000 steps, seed 2 interrupted after one episode: reported with what it has."""
+    common = ["--algos", "pets", "--envs", "Pendulum-v1", "-n", "2000", "--n-evals", "2", "--log-folder", str(tmp_path)]
+    options = compare_module.parse_args([*common, "--seeds", "0", "1", "2"])
+    for job in compare_module.plan_jobs(options):
+        run_dir = tmp_path / job.zoo_algo / f"Pendulum-v1_{job.seed + 1}_{job.algo}"
+        if job.seed < 2:
+            write_fake_run(job, run_dir, [-100.0, 10.0 * (job.seed + 1)], [-300.0, -200.0], 1000)
+        else:
+            write_fake_run(job, run_dir, [-50.0], [-250.0], 1000)
+            (run_dir / compare_module.COMPLETE_FILE).unlink()  # interrupted after its first episode
+    report = tmp_path / "report"
+    argv = [*common, "--seeds", "0", "1", "2", "--report-only", "--output", str(report)]
+    assert compare_module.main([*argv, "--include-unfinished"]) == 0
+    assert "1 of 3 runs are unfinished" in capsys.readouterr().out
+    table = (report / "results.md").read_text()
+    # the matched step is the unfinished run's last evaluation (1000): -100, -100, -50
+    assert "| Pendulum-v1 | 1000 | -83.3 ± 23.6 (3 seeds, 1 unfinished) |" in table
+    assert "| Pendulum-v1 | PETS | 2 | 1000 |" in table  # the unfinished runs' section
+    results = json.loads((report / "results.json").read_text())
+    task = results["tasks"][0]
+    assert task["unfinished"] == {"pets": 1} and [run.get("unfinished", False) for run in results["runs"]] == [False, False, True]
+    # the paper's protocol at the budget (2000) leaves out the run that stopped at 1000 steps
+    assert task["paper_protocol"]["labels"]["PETS"] == {
+        "seeds": [0, 1],
+        "values": [-250.0, -250.0],
+        "mean": -250.0,
+        "std": 0.0,
+    }
+    # without the option the interrupted run is missing
+    assert compare_module.main(argv) == 1
+    assert "1 of 3 runs are missing" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        compare_module.parse_args([*common, "--include-unfinished"])
+
+
 def test_compare_plans_and_reports_the_paper_suite(tmp_path: Path) -> None:
     from sb3_poplin.tasks.paper_suite import PAPER_TASKS
 

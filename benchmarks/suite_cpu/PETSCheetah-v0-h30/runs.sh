@@ -121,8 +121,9 @@ case "${1:-}" in
         done ;;
     report)
         column_args "$2" report
-        # the table: the paper's protocol at 15k, 25k, 35k and 50k steps, each seed's value too
-        (cd "$REPO" && "$REPO/.venv/bin/python" benchmarks/compare.py "${ARGS[@]}" --report-only \
+        # the table: the paper's protocol at 15k, 25k, 35k and 50k steps, each seed's value too; runs not
+        # finished yet are in it as far as they got (their small files, synced)
+        (cd "$REPO" && "$REPO/.venv/bin/python" benchmarks/compare.py "${ARGS[@]}" --report-only --include-unfinished \
             --protocol-steps 15000 25000 35000 50000 --log-folder "$HERE/$FOLDER/zoo" --output "$HERE/$2") || true ;;
     status)
         pgrep -af "sb3_poplin(.experiments)?.zoo train" | sed 's/ -params.*//' || echo "no run is training"

@@ -17,6 +17,7 @@ from sb3_poplin.experiments.compare.jobs import (
     SUITES,
     CompareOptions,
     JobResult,
+    find_interrupted,
     find_run,
     plan_jobs,
 )
@@ -102,6 +103,11 @@ def parse_args(argv: list[str] | None = None) -> CompareOptions:
     )
     parser.add_argument("--force", action="store_true", help="train again even when a complete run exists")
     parser.add_argument("--report-only", action="store_true", help="do not train: report the complete runs that exist")
+    parser.add_argument(
+        "--include-unfinished",
+        action="store_true",
+        help="with --report-only: also report the interrupted runs, as far as they got (marked in the report)",
+    )
     options = parser.parse_args(argv)
     if options.eval_episodes is not None and options.eval_episodes < 2:
         parser.error("--eval-episodes must be >= 2 (rl-zoo3's all_plots needs it)")
@@ -109,6 +115,8 @@ def parse_args(argv: list[str] | None = None) -> CompareOptions:
         parser.error("--jobs, --n-evals and --paper-window must be >= 1")
     if any(step < 1 for step in options.protocol_steps):
         parser.error("--protocol-steps takes environment steps >= 1")
+    if options.include_unfinished and not options.report_only:
+        parser.error("--include-unfinished reports runs as they stand: use it with --report-only")
     if options.policy_eval_freq is not None and options.policy_eval_freq < 1:
         parser.error("--policy-eval-freq must be >= 1")
     return CompareOptions(**vars(options))
@@ -127,8 +135,13 @@ def main(argv: list[str] | None = None) -> int:
     if options.report_only:
         results = []
         for job in jobs:
-            run_dir = find_run(job)
-            results.append(JobResult(job, 0 if run_dir else 1, run_dir, reused=run_dir is not None, missing=not run_dir))
+            run_dir, unfinished = find_run(job), False
+            if run_dir is None and options.include_unfinished:
+                run_dir = find_interrupted(job)
+                unfinished = run_dir is not None
+            result = JobResult(job, 0 if run_dir else 1, run_dir, reused=run_dir is not None, missing=not run_dir)
+            result.unfinished = unfinished
+            results.append(result)
     elif options.ray_address:
         results = run_ray(jobs, options.ray_address, options.jobs, options.force)
     else:
@@ -150,8 +163,11 @@ def main(argv: list[str] | None = None) -> int:
     n_failed = sum(result.run_dir is None and not result.missing for result in results)
     if n_failed:
         print(f"{n_failed} of {len(results)} runs failed (see {jobs[0].log_folder}/compare_logs)")
+    n_unfinished = sum(result.unfinished for result in results)
     if n_missing:
         print(f"{n_missing} of {len(results)} runs are missing: --report-only reports complete runs, run without it")
+    if n_unfinished:
+        print(f"{n_unfinished} of {len(results)} runs are unfinished: reported as far as they got")
     return 1 if n_failed or n_missing else 0
 
 

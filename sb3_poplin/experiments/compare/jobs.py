@@ -66,6 +66,7 @@ class CompareOptions:
     :param keep_learning_starts: keep the baselines' long random warm-up
     :param force: train again even where a complete run exists
     :param report_only: train nothing, report the complete runs
+    :param include_unfinished: with ``report_only``, also report the interrupted runs as far as they got
     """
 
     algos: list[str] = field(default_factory=lambda: list(ALGOS))
@@ -91,6 +92,7 @@ class CompareOptions:
     keep_learning_starts: bool = False
     force: bool = False
     report_only: bool = False
+    include_unfinished: bool = False
 
     def poplin_conf(self) -> Path:
         """:return: POPLIN's hyperparameter file of the budget"""
@@ -273,6 +275,7 @@ class JobResult:
     :param output_tail: the end of the run's output (for failures)
     :param files: run files sent back by a Ray task (relative path -> content)
     :param missing: no complete run exists and none was started (``--report-only``): reported as missing, not failed
+    :param unfinished: ``run_dir`` is an interrupted run, reported as far as it got (``--include-unfinished``)
     """
 
     job: Job
@@ -283,6 +286,7 @@ class JobResult:
     output_tail: str = ""
     files: dict[str, bytes] = field(default_factory=dict)
     missing: bool = False
+    unfinished: bool = False
 
 
 def is_complete(run: Path, name: str) -> bool:

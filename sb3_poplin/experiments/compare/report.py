@@ -110,7 +110,10 @@ def load_training(result: JobResult) -> TrainingEpisodes | None:
         return None
     rows.sort(key=lambda row: row[2])
     returns, lengths, _ = (np.asarray(column, dtype=float) for column in zip(*rows, strict=True))
-    return TrainingEpisodes(job.column.upper(), job.seed, np.cumsum(lengths).astype(int), returns, job.n_timesteps)
+    end_steps = np.cumsum(lengths).astype(int)
+    # an unfinished run has trained as far as its last episode's end, not its budget
+    trained = int(end_steps[-1]) if result.unfinished else job.n_timesteps
+    return TrainingEpisodes(job.column.upper(), job.seed, end_steps, returns, trained)
 
 
 def first_step_reaching(steps: np.ndarray, values: np.ndarray, target: float) -> int | None:
@@ -231,6 +234,7 @@ class TaskSummary:
     :param expected: algorithm -> runs planned
     :param missing: algorithm -> runs not found and not started (``--report-only``)
     :param paper_protocol: the paper's protocol
+    :param unfinished: algorithm -> interrupted runs reported as far as they got (``--include-unfinished``)
     :param reach: the steps to reach the reference's final return (``None``: no reference column ran)
     :param name: the task's name in the tables (the paper's, in the paper suite)
     :param protocol_at: the paper's protocol at more steps (``--protocol-steps``), in order
@@ -246,6 +250,7 @@ class TaskSummary:
     reach: Reach | None = None
     name: str = ""
     protocol_at: list[ProtocolSummary] = field(default_factory=list)
+    unfinished: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.name = self.name or self.env
@@ -266,6 +271,8 @@ class TaskSummary:
         entry["name"] = self.name
         if self.protocol_at:
             entry["paper_protocol_at"] = [protocol.to_json() for protocol in self.protocol_at]
+        if self.unfinished:
+            entry["unfinished"] = self.unfinished
         return entry
 
 
@@ -374,11 +381,13 @@ def format_cell(summary: TaskSummary, label: str, algo: str) -> str:
     :param summary: a task's summary
     :param label: column label
     :param algo: the label's algorithm
-    :return: the table cell: mean ± std over seeds, the number of seeds, of failed runs and of missing ones (not run
-        yet: ``--report-only``)
+    :return: the table cell: mean ± std over seeds, the number of seeds, of failed runs, of missing ones (not run
+        yet: ``--report-only``) and of unfinished ones among the seeds (``--include-unfinished``)
     """
     entry = summary.labels.get(label)
     absent = {"failed": summary.failed.get(algo, 0), "missing": summary.missing.get(algo, 0)}
+    if summary.unfinished.get(algo, 0):
+        absent["unfinished"] = summary.unfinished[algo]
     note = "".join(f", {count} {kind}" for kind, count in absent.items() if count)
     if entry is None:
         expected = summary.expected.get(algo, 0)
@@ -544,6 +553,10 @@ def write_table(summaries: list[TaskSummary], budget: str, path: Path) -> None:
     path.write_text("\n".join(lines + protocol_lines(summaries)) + "\n")
 
 
+def _seeds(count: int) -> str:
+    return f"{count} seed{'' if count == 1 else 's'}"
+
+
 def _new_figure() -> tuple[Any, Any]:
     """A figure and its axes, drawn off screen (matplotlib is imported only when a report draws)."""
     import matplotlib
@@ -584,7 +597,7 @@ def plot_curves(env: str, curves: list[Curve], budget: str, path: Path) -> None:
         steps = runs[0].timesteps[:length]
         values = np.stack([curve.returns[:length] for curve in runs])
         mean, std = values.mean(axis=0), values.std(axis=0)
-        axis.plot(steps, mean, label=f"{label} ({len(runs)} seeds)", linewidth=2)
+        axis.plot(steps, mean, label=f"{label} ({_seeds(len(runs))})", linewidth=2)
         axis.fill_between(steps, mean - std, mean + std, alpha=0.2)
     _save_figure(figure, axis, f"{env} ({budget} budget)", "evaluation return (mean ± std over seeds)", path)
 
@@ -619,7 +632,7 @@ def plot_training(env: str, training: list[TrainingEpisodes], budget: str, windo
             axis.plot(run.end_steps, run.returns, color=color, alpha=0.25, linewidth=0.8)
         steps = np.unique(np.concatenate([run.end_steps for run in runs]))
         mean = training_curve(runs, steps, window)
-        axis.plot(steps, mean, color=color, linewidth=2, label=f"{label} ({len(runs)} seeds; thick: last {window} steps)")
+        axis.plot(steps, mean, color=color, linewidth=2, label=f"{label} ({_seeds(len(runs))}; thick: last {window} steps)")
     _save_figure(figure, axis, f"{env}: training episodes ({budget} budget)", "training episode return", path)
 
 
@@ -655,16 +668,20 @@ def write_report(
         failed: dict[str, int] = {}
         missing: dict[str, int] = {}
         expected: dict[str, int] = {}
+        unfinished: dict[str, int] = {}
         for result in env_results:
             expected[result.job.column] = expected.get(result.job.column, 0) + 1
             if result.run_dir is None:
                 absent = missing if result.missing else failed
                 absent[result.job.column] = absent.get(result.job.column, 0) + 1
-        finished = [result for result in env_results if result.run_dir is not None]
-        training = [episodes for result in finished if (episodes := load_training(result)) is not None]
+            elif result.unfinished:
+                unfinished[result.job.column] = unfinished.get(result.job.column, 0) + 1
+        found = [result for result in env_results if result.run_dir is not None]
+        training = [episodes for result in found if (episodes := load_training(result)) is not None]
         budget_step = min((result.job.n_timesteps for result in env_results), default=None)
         summary = summarize(env, curves, failed, expected, training, budget_step, window, reference, missing, protocol_steps)
         summary.name = (paper_names or {}).get(env, env)
+        summary.unfinished = unfinished
         summaries.append(summary)
         if curves:
             title = env if summary.name == env else f"{summary.name} ({env})"
@@ -677,7 +694,25 @@ def write_report(
         write_paper_table(summaries, budget, table)
     else:
         write_table(summaries, budget, table)
-    runs = [{**asdict(result.job), "run_dir": result.run_dir, "returncode": result.returncode} for result in results]
+    reached = [(result, load_training(result)) for result in results if result.unfinished]
+    if reached:
+        lines = [
+            "",
+            "## Unfinished runs",
+            "",
+            "Interrupted runs, in the tables above as far as they got (`--include-unfinished`):",
+            "",
+            "| task | column | seed | steps reached (last episode's end) |",
+            "|---|---|---|---|",
+        ]
+        for result, episodes in reached:
+            steps = "—" if episodes is None else str(episodes.n_timesteps)
+            lines.append(f"| {result.job.env} | {result.job.column.upper()} | {result.job.seed} | {steps} |")
+        table.write_text(table.read_text() + "\n".join(lines) + "\n")
+    runs = []
+    for result in results:
+        run = {**asdict(result.job), "run_dir": result.run_dir, "returncode": result.returncode}
+        runs.append({**run, "unfinished": True} if result.unfinished else run)
     suite = "paper" if paper_names else "all"
     tasks = [summary.to_json() for summary in summaries]
     report = {"budget": budget, "suite": suite, "reference": reference, "tasks": tasks, "runs": runs}
