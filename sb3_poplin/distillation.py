@@ -300,10 +300,11 @@ class Distiller:
         space = self.search_space
         action = plan.action if self.target == "executed" else space.planned_action(plan.solution, obs, None)
         record = {"states": obs.clone(), "actions": action, "keep": ~plan.fallback}
+        # the blocks are copied out of the search vectors: a view would keep (and a save would write) the whole vector
         if self.method == "avg":  # the final mean, as the original Avg (also when the best candidate is executed)
-            record["blocks"] = space.first_block(plan.mean)
+            record["blocks"] = space.first_block(plan.mean).clone()
         if self.imagined:
-            elite_blocks = space.first_block(plan.elites)  # [n_envs, K, block]
+            elite_blocks = space.first_block(plan.elites).clone()  # [n_envs, K, block]
             if self.method == "avg":
                 record["elite_blocks"] = elite_blocks
             else:

@@ -280,7 +280,8 @@ def test_report_only_includes_unfinished_runs_as_far_as_they_got(tmp_path: Path,
     assert "| Pendulum-v1 | PETS | 2 | 1000 |" in table  # the unfinished runs' section
     results = json.loads((report / "results.json").read_text())
     task = results["tasks"][0]
-    assert task["unfinished"] == {"pets": 1} and [run.get("unfinished", False) for run in results["runs"]] == [False, False, True]
+    assert task["unfinished"] == {"pets": 1}
+    assert [run.get("unfinished", False) for run in results["runs"]] == [False, False, True]
     # the paper's protocol at the budget (2000) leaves out the run that stopped at 1000 steps
     assert task["paper_protocol"]["labels"]["PETS"] == {
         "seeds": [0, 1],

@@ -418,6 +418,27 @@ def test_interrupted_training_leaves_a_usable_model(tmp_path, error):
     assert model.num_timesteps >= 600
 
 
+@pytest.mark.parametrize("kwargs", [dict(noise="sep"), dict(noise="uni"), dict(noise="sep", distill_imagined=True)])
+def test_planned_steps_hold_their_blocks_not_the_search_vectors(tmp_path, kwargs):
+    """POPLIN-P Avg keeps the first block of each plan: in memory and in a zip saved in mid-episode, not all H blocks."""
+    model = POPLIN("poplin-p", "Pendulum-v1", seed=0, **{**TINY, "distillation": "avg", **kwargs})
+    model.learn(1000, callback=StopAt(300))
+    block = model.planner.search_space.block
+    for record in model.distiller.planned:
+        for key in ("blocks", "elite_blocks"):
+            if key in record:
+                assert record[key].shape[-1] == block
+                assert record[key].untyped_storage().nbytes() == record[key].numel() * record[key].element_size(), key
+    model.save(tmp_path / "agent")
+    with zipfile.ZipFile(tmp_path / "agent.zip") as archive:
+        saved = archive.getinfo("distiller.pth").file_size
+    per_step = sum(value.numel() * value.element_size() for value in model.distiller.planned[0].values())
+    assert saved < 2 * len(model.distiller.planned) * per_step + 100_000  # the records' bytes, plus pickling overhead
+    loaded = POPLIN.load(tmp_path / "agent")
+    for record, restored in zip(model.distiller.planned, loaded.distiller.planned, strict=True):
+        assert all(th.equal(record[key], restored[key]) for key in record)
+
+
 # ---------------------------------------------------------------- checkpoints: the callbacks' schedule
 EPISODE = 50  # Pendulum-v1 cut to 50 steps: a checkpoint every 50 steps
 
