@@ -13,8 +13,8 @@
 # COLUMN: headline (PETS and POPLIN-P Sep/Avg, seeds 0-3; its report has the baselines too), baselines (SAC and TD3
 # to 3 x 50k, in the headline's log folder), bc (POPLIN-P Sep with
 # BC and init_var 0.03, seeds 0-1), replan (POPLIN-A Replan, seeds 0-1). On a new machine, `start` first restores the
-# runs committed here: complete ones from their small files, unfinished ones from their small files and the latest
-# checkpoint that `sync` carried into carry/ (a new session may get a new machine: the runs of 5d8f6a0 were lost so).
+# runs committed here: complete ones from their small files (and their final agent, carried into carry/.../final/ for
+# the posture check), unfinished ones from their small files and the latest checkpoint that `sync` carried into carry/ (a new session may get a new machine: the runs of 5d8f6a0 were lost so).
 set -euo pipefail
 
 PIN=6f0e1cf  # the runs' code: never moved while a column is unfinished (5d8f6a0's runs were lost with their machine)
@@ -71,6 +71,9 @@ restore() {  # runs committed here, on a machine that lacks them: complete ones,
         folder=$(dirname "$marker")
         target=$ROOT/logs/$column/${folder#"$HERE/$column/zoo/"}
         [ -d "$target" ] || { mkdir -p "$(dirname "$target")"; cp -r "$folder" "$target"; }
+        for final in "$HERE/carry/$column/${folder#"$HERE/$column/zoo/"}"/final/*.zip; do  # its final agent
+            if [ -e "$final" ] && [ ! -e "$target/$(basename "$final")" ]; then cp -p "$final" "$target/"; fi
+        done
     done
     for step in "$HERE/carry/$column"/*/*/step-*; do  # carry/<column>/<algo>/<run>/step-N
         [ -d "$step" ] || continue
@@ -84,13 +87,21 @@ restore() {  # runs committed here, on a machine that lacks them: complete ones,
     done
 }
 
-carry() {  # the latest checkpoint of every unfinished run into carry/ (a complete run's carry goes)
-    local logs=$1 column run relative latest
+carry() {  # the latest checkpoint of every unfinished run into carry/; a complete run's final agent (for the posture
+    local logs=$1 column run relative latest final  # check of the final agents) instead of its checkpoint
     column=$(basename "$logs")
     for run in "$logs"*/*/; do
         run=${run%/}; relative=${run#"$logs"}
+        if [ -e "$run/compare_complete.json" ]; then
+            rm -rf "$HERE/carry/$column/$relative"/step-*
+            final=$run/$(basename "$(dirname "$TASK")")-$(basename "$TASK").zip  # the zoo's <env name>.zip
+            if [ -e "$final" ] && [ ! -e "$HERE/carry/$column/$relative/final/$(basename "$final")" ]; then
+                mkdir -p "$HERE/carry/$column/$relative/final"; cp -p "$final" "$HERE/carry/$column/$relative/final/"
+            fi
+            continue
+        fi
         latest=$(ls "$run/checkpoints" 2>/dev/null | grep -E '^step-[0-9]+$' | sort -t- -k2 -n | tail -1 || true)
-        if [ -e "$run/compare_complete.json" ] || [ -z "$latest" ]; then
+        if [ -z "$latest" ]; then
             rm -rf "$HERE/carry/$column/$relative"; continue
         fi
         [ -d "$HERE/carry/$column/$relative/$latest" ] && continue
