@@ -14,7 +14,8 @@
 # to 3 x 50k, in the headline's log folder), bc (POPLIN-P Sep with
 # BC and init_var 0.03, seeds 0-1), replan (POPLIN-A Replan, seeds 0-1). On a new machine, `start` first restores the
 # runs committed here: complete ones from their small files (and their final agent, carried into carry/.../final/ for
-# the posture check), unfinished ones from their small files and the latest checkpoint that `sync` carried into carry/ (a new session may get a new machine: the runs of 5d8f6a0 were lost so).
+# the posture check), unfinished ones from their small files and the latest checkpoint that `sync` carried into
+# carry/ (a new session may get a new machine: the runs of 5d8f6a0 were lost so).
 set -euo pipefail
 
 PIN=6f0e1cf  # the runs' code: never moved while a column is unfinished (5d8f6a0's runs were lost with their machine)
