@@ -304,9 +304,9 @@ class Distiller:
         if self.method == "avg":  # the final mean, as the original Avg (also when the best candidate is executed)
             record["blocks"] = space.first_block(plan.mean).clone()
         if self.imagined:
-            elite_blocks = space.first_block(plan.elites).clone()  # [n_envs, K, block]
+            elite_blocks = space.first_block(plan.elites)  # [n_envs, K, block]
             if self.method == "avg":
-                record["elite_blocks"] = elite_blocks
+                record["elite_blocks"] = elite_blocks.clone()
             else:
                 b, k = elite_blocks.shape[:2]
                 to_action = space.executed_action if self.target == "executed" else space.planned_action

@@ -260,40 +260,51 @@ def test_report_only_labels_runs_not_made_yet_missing_and_not_failed(
 
 
 def test_report_only_includes_unfinished_runs_as_far_as_they_got(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Seeds 0-1 finished at 2000 steps, seed 2 interrupted after one episode: reported with what it has."""
+    """Seeds 0-1 finished at 2000 steps; seed 2 was interrupted at 2000, seed 3 after its first episode."""
     common = ["--algos", "pets", "--envs", "Pendulum-v1", "-n", "2000", "--n-evals", "2", "--log-folder", str(tmp_path)]
-    options = compare_module.parse_args([*common, "--seeds", "0", "1", "2"])
-    for job in compare_module.plan_jobs(options):
+    seeds = ["--seeds", "0", "1", "2", "3"]
+    for job in compare_module.plan_jobs(compare_module.parse_args([*common, *seeds])):
         run_dir = tmp_path / job.zoo_algo / f"Pendulum-v1_{job.seed + 1}_{job.algo}"
-        if job.seed < 2:
-            write_fake_run(job, run_dir, [-100.0, 10.0 * (job.seed + 1)], [-300.0, -200.0], 1000)
+        if job.seed < 3:
+            write_fake_run(job, run_dir, [-100.0, 10.0 * (job.seed + 1)], [-300.0, -200.0 + 50 * (job.seed == 2)], 1000)
         else:
             write_fake_run(job, run_dir, [-50.0], [-250.0], 1000)
-            (run_dir / compare_module.COMPLETE_FILE).unlink()  # interrupted after its first episode
+        if job.seed >= 2:
+            (run_dir / compare_module.COMPLETE_FILE).unlink()  # interrupted
     report = tmp_path / "report"
-    argv = [*common, "--seeds", "0", "1", "2", "--report-only", "--output", str(report)]
+    argv = [*common, *seeds, "--report-only", "--output", str(report)]
     assert compare_module.main([*argv, "--include-unfinished"]) == 0
-    assert "1 of 3 runs are unfinished" in capsys.readouterr().out
+    assert "2 of 4 runs are unfinished" in capsys.readouterr().out
     table = (report / "results.md").read_text()
-    # the matched step is the unfinished run's last evaluation (1000): -100, -100, -50
-    assert "| Pendulum-v1 | 1000 | -83.3 ± 23.6 (3 seeds, 1 unfinished) |" in table
-    assert "| Pendulum-v1 | PETS | 2 | 1000 |" in table  # the unfinished runs' section
+    # the matched step is the complete runs' (2000): seed 2 reached it (30), seed 3 did not and has no value there
+    assert "| Pendulum-v1 | 2000 | 20.0 ± 8.2 (3 seeds, 1 unfinished) |" in table
+    assert "| Pendulum-v1 | PETS | 2 | 2000 |" in table and "| Pendulum-v1 | PETS | 3 | 1000 |" in table
     results = json.loads((report / "results.json").read_text())
     task = results["tasks"][0]
-    assert task["unfinished"] == {"pets": 1}
-    assert [run.get("unfinished", False) for run in results["runs"]] == [False, False, True]
-    # the paper's protocol at the budget (2000) leaves out the run that stopped at 1000 steps
-    assert task["paper_protocol"]["labels"]["PETS"] == {
-        "seeds": [0, 1],
-        "values": [-250.0, -250.0],
-        "mean": -250.0,
-        "std": 0.0,
-    }
-    # without the option the interrupted run is missing
+    assert task["unfinished"] == {"PETS (MPC)": 1}
+    assert [run.get("unfinished", False) for run in results["runs"]] == [False, False, True, True]
+    # the paper's protocol at the budget (2000) leaves out seed 3, which stopped at 1000 steps
+    assert task["paper_protocol"]["labels"]["PETS"]["seeds"] == [0, 1, 2]
+    assert task["paper_protocol"]["labels"]["PETS"]["values"] == pytest.approx([-250, -250, -225])
+    # without the option the interrupted runs are missing
     assert compare_module.main(argv) == 1
-    assert "1 of 3 runs are missing" in capsys.readouterr().out
+    assert "2 of 4 runs are missing" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         compare_module.parse_args([*common, "--include-unfinished"])
+
+
+def test_an_unfinished_run_does_not_lower_the_matched_step() -> None:
+    """An unfinished run's early policy evaluations do not move the matched step below the complete runs' schedule."""
+    complete = [
+        compare_module.Curve("PETS (MPC)", 0, np.array([25000, 50000]), np.array([100.0, 200.0])),
+        compare_module.Curve("POPLIN-P (MPC)", 0, np.array([25000, 50000]), np.array([300.0, 400.0])),
+    ]
+    early = compare_module.Curve("POPLIN-P (policy)", 1, np.array([5000, 10000]), np.array([-1.0, -2.0]), unfinished=True)
+    summary = compare_module.summarize("Pendulum-v1", [*complete, early], {}, {}, reference="POPLIN-P (MPC)")
+    assert summary.matched_step == 50000
+    assert summary.labels["PETS (MPC)"].values == [200.0] and "POPLIN-P (policy)" not in summary.labels
+    assert summary.unfinished == {}
+    assert compare_module.format_cell(summary, "POPLIN-P (MPC)", "poplin-p") == "400.0 (1 seed)"
 
 
 def test_compare_plans_and_reports_the_paper_suite(tmp_path: Path) -> None:

@@ -28,12 +28,14 @@ class Curve:
     :param seed: the run's seed
     :param timesteps: evaluation steps
     :param returns: mean evaluation return at each of them
+    :param unfinished: the run was interrupted (``--include-unfinished``)
     """
 
     label: str
     seed: int
     timesteps: np.ndarray
     returns: np.ndarray
+    unfinished: bool = False
 
 
 def load_curves(result: JobResult) -> list[Curve]:
@@ -59,7 +61,8 @@ def load_curves(result: JobResult) -> list[Curve]:
         with np.load(path) as data:
             timesteps, results = np.asarray(data["timesteps"]), np.asarray(data["results"], dtype=float)
         if len(timesteps):
-            curves.append(Curve(label, job.seed, timesteps, results.reshape(len(timesteps), -1).mean(axis=1)))
+            returns = results.reshape(len(timesteps), -1).mean(axis=1)
+            curves.append(Curve(label, job.seed, timesteps, returns, result.unfinished))
     return curves
 
 
@@ -234,7 +237,8 @@ class TaskSummary:
     :param expected: algorithm -> runs planned
     :param missing: algorithm -> runs not found and not started (``--report-only``)
     :param paper_protocol: the paper's protocol
-    :param unfinished: algorithm -> interrupted runs reported as far as they got (``--include-unfinished``)
+    :param unfinished: column label -> its seeds that are interrupted runs, reported as far as they got
+        (``--include-unfinished``)
     :param reach: the steps to reach the reference's final return (``None``: no reference column ran)
     :param name: the task's name in the tables (the paper's, in the paper suite)
     :param protocol_at: the paper's protocol at more steps (``--protocol-steps``), in order
@@ -286,10 +290,11 @@ def reach_entry(steps: np.ndarray, per_seed: list[np.ndarray], seeds: list[int],
     """
     mean = np.mean(np.stack(per_seed), axis=0)
     pairs = zip(seeds, per_seed, strict=True)
+    defined = np.flatnonzero(np.isfinite(mean))  # the mean is undefined past the end of an unfinished seed
     return ReachEntry(
         first_step_reaching(steps, mean, target),
         {str(seed): first_step_reaching(steps, values, target) for seed, values in pairs},
-        int(steps[-1]),
+        int(steps[defined[-1]] if len(defined) else steps[-1]),
     )
 
 
@@ -347,19 +352,27 @@ def summarize(
     :param missing: algorithm -> runs not found and not started (``--report-only``)
     :param protocol_steps: more steps to apply the paper's protocol at (a learning curve by the paper's measure)
     """
-    matched = int(min(curve.timesteps[-1] for curve in curves)) if curves else 0
+    # the last step every complete run reached (only unfinished ones: every run); an unfinished run that did not reach
+    # it, or a curve with no evaluation by then, has no value there
+    complete = [curve for curve in curves if not curve.unfinished] or curves
+    matched = int(min(curve.timesteps[-1] for curve in complete)) if curves else 0
     labels: dict[str, SeedValues] = {}
+    unfinished: dict[str, int] = {}
     for curve in curves:
+        if curve.timesteps[0] > matched or curve.timesteps[-1] < matched:
+            continue
         labels.setdefault(curve.label, SeedValues()).add(curve.seed, value_at(curve, matched))
+        if curve.unfinished:
+            unfinished[curve.label] = unfinished.get(curve.label, 0) + 1
     training = training or []
     protocol = paper_protocol(training, budget_step, window)
-    summary = TaskSummary(env, matched, labels, failed, expected, dict(missing or {}), protocol)
+    summary = TaskSummary(env, matched, labels, failed, expected, dict(missing or {}), protocol, unfinished=unfinished)
     summary.protocol_at = [paper_protocol(training, step, window) for step in protocol_steps or []]
     if reference is None or reference not in labels:
         return summary
     reach = Reach(reference, labels[reference].mean)
     for label in labels:
-        runs = [curve for curve in curves if curve.label == label]
+        runs = [curve for curve in curves if curve.label == label and curve.seed in labels[label].seeds]
         length = min(len(curve.timesteps) for curve in runs)
         values = [curve.returns[:length] for curve in runs]
         reach.evaluation[label] = reach_entry(runs[0].timesteps[:length], values, [c.seed for c in runs], reach.target)
@@ -386,8 +399,8 @@ def format_cell(summary: TaskSummary, label: str, algo: str) -> str:
     """
     entry = summary.labels.get(label)
     absent = {"failed": summary.failed.get(algo, 0), "missing": summary.missing.get(algo, 0)}
-    if summary.unfinished.get(algo, 0):
-        absent["unfinished"] = summary.unfinished[algo]
+    if summary.unfinished.get(label, 0):
+        absent["unfinished"] = summary.unfinished[label]
     note = "".join(f", {count} {kind}" for kind, count in absent.items() if count)
     if entry is None:
         expected = summary.expected.get(algo, 0)
@@ -668,20 +681,16 @@ def write_report(
         failed: dict[str, int] = {}
         missing: dict[str, int] = {}
         expected: dict[str, int] = {}
-        unfinished: dict[str, int] = {}
         for result in env_results:
             expected[result.job.column] = expected.get(result.job.column, 0) + 1
             if result.run_dir is None:
                 absent = missing if result.missing else failed
                 absent[result.job.column] = absent.get(result.job.column, 0) + 1
-            elif result.unfinished:
-                unfinished[result.job.column] = unfinished.get(result.job.column, 0) + 1
         found = [result for result in env_results if result.run_dir is not None]
         training = [episodes for result in found if (episodes := load_training(result)) is not None]
         budget_step = min((result.job.n_timesteps for result in env_results), default=None)
         summary = summarize(env, curves, failed, expected, training, budget_step, window, reference, missing, protocol_steps)
         summary.name = (paper_names or {}).get(env, env)
-        summary.unfinished = unfinished
         summaries.append(summary)
         if curves:
             title = env if summary.name == env else f"{summary.name} ({env})"
