@@ -136,7 +136,20 @@ case "${1:-}" in
         # the issue's table: the paper's protocol at 15k, 25k, 35k and 50k steps, each seed's value too; runs not
         # finished yet are in it as far as they got (their small files, synced)
         (cd "$REPO" && "$REPO/.venv/bin/python" benchmarks/compare.py "${ARGS[@]}" --report-only --include-unfinished \
-            --protocol-steps 15000 25000 35000 50000 --log-folder "$HERE/$FOLDER/zoo" --output "$HERE/$2") || true ;;
+            --protocol-steps 15000 25000 35000 50000 --log-folder "$HERE/$FOLDER/zoo" --output "$HERE/$2") || true
+        [ -e "$HERE/$2/results.md" ] && cat >> "$HERE/$2/results.md" <<'PAPER'
+
+## Beside the paper
+
+Wang & Ba 2019, Table 1 (PETS's Cheetah, 50 000 steps, horizon 30, 4 seeds; the same measure: the mean return of
+the training episodes that ended in the last 3000 steps). The paper's planner had a population of 500 and a
+5 × 4×200 model; these runs have 200 (20 elites, 5 iterations) and the CPU preset's 5 × 3×128 (issue 45).
+
+| | POPLIN-P | POPLIN-A | PETS | SAC | TD3 |
+|---|---|---|---|---|---|
+| the paper, 50k steps | 12228 ± 5653 | 4651 ± 1089 | 4205 ± 789 | 1746 ± 839 | 219 ± 593 |
+PAPER
+        ;;
     status)
         pgrep -af "sb3_poplin(.experiments)?.zoo train" | sed 's/ -params.*//' || echo "no run is training"
         for log in "$ROOT"/logs/*/compare_logs/*.log; do
