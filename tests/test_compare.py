@@ -293,6 +293,28 @@ def test_report_only_includes_unfinished_runs_as_far_as_they_got(tmp_path: Path,
         compare_module.parse_args([*common, "--include-unfinished"])
 
 
+def test_the_interrupted_run_to_continue_is_the_furthest_one(tmp_path: Path) -> None:
+    """The newest checkpoint wins; without checkpoints (a synced copy) the most training episodes, then the newest."""
+    import os
+
+    common = ["--algos", "pets", "--envs", "Pendulum-v1", "-n", "5000", "--seeds", "0", "--log-folder", str(tmp_path)]
+    job = compare_module.plan_jobs(compare_module.parse_args(common))[0]
+    runs = {}
+    for name, episodes, mtime in (("ahead", 4, 100.0), ("behind", 2, 200.0)):
+        run_dir = tmp_path / job.zoo_algo / f"Pendulum-v1_{name}"
+        write_fake_run(job, run_dir, [-100.0], [-300.0] * episodes, 1000)
+        (run_dir / compare_module.COMPLETE_FILE).unlink()
+        os.utime(run_dir / job.env / "args.yml", (mtime, mtime))
+        os.utime(run_dir, (mtime, mtime))
+        runs[name] = str(run_dir.relative_to(tmp_path))
+    assert compare_module.find_interrupted(job) == runs["ahead"]  # 4 episodes against 2, though older
+    step = tmp_path / runs["behind"] / "checkpoints" / "step-2000"
+    step.mkdir(parents=True)
+    for name in ("model.zip", "replay_buffer.npz", "state.pt"):
+        (step / name).write_bytes(b"x")
+    assert compare_module.find_interrupted(job) == runs["behind"]  # a checkpoint to resume from beats none
+
+
 def test_an_unfinished_run_does_not_lower_the_matched_step() -> None:
     """An unfinished run's early policy evaluations do not move the matched step below the complete runs' schedule."""
     complete = [

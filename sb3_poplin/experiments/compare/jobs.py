@@ -342,15 +342,17 @@ def find_interrupted(job: Job) -> str | None:
     """
     :param job: the job
     :return: the interrupted run of ``job`` to continue (relative path): the one with the newest checkpoint, else
-        the newest one; ``None`` when there is none
+        the one with the most training episodes (copies of runs without their checkpoints), else the newest one;
+        ``None`` when there is none
     """
     interrupted = [(mtime, run) for mtime, run, done in job_runs(job) if not done]
     if not interrupted:
         return None
 
-    def progress(item: tuple[float, Path]) -> tuple[int, float]:
+    def progress(item: tuple[float, Path]) -> tuple[int, int, float]:
         checkpoint = latest_checkpoint(item[1])
-        return (int(checkpoint.name.split("-", 1)[1]) if checkpoint is not None else -1, item[0])
+        episodes = sum(max(0, len(path.read_text().splitlines()) - 2) for path in item[1].glob("*.monitor.csv"))
+        return (int(checkpoint.name.split("-", 1)[1]) if checkpoint is not None else -1, episodes, item[0])
 
     return str(max(interrupted, key=progress)[1].relative_to(job.log_folder))
 
