@@ -315,6 +315,21 @@ def test_the_interrupted_run_to_continue_is_the_furthest_one(tmp_path: Path) -> 
     assert compare_module.find_interrupted(job) == runs["behind"]  # a checkpoint to resume from beats none
 
 
+def test_the_reach_tables_last_step_is_the_last_one_the_mean_covers() -> None:
+    """With a seed that stopped at 2000 steps, the mean over seeds is undefined after it: "not by" says 2000."""
+    curve = compare_module.Curve("PETS (MPC)", 0, np.array([1000, 2000]), np.array([10.0, 20.0]))
+    done = compare_module.TrainingEpisodes(
+        "PETS", 0, np.array([1000, 2000, 3000, 4000]), np.array([-40.0, -30, -20, -10]), 4000
+    )
+    stopped = compare_module.TrainingEpisodes("PETS", 1, np.array([1000, 2000]), np.array([-40.0, -30]), 2000)
+    summary = compare_module.summarize(
+        "Pendulum-v1", [curve], {}, {}, [done, stopped], budget_step=4000, reference="PETS (MPC)"
+    )
+    assert summary.reach is not None and summary.reach.paper_target == pytest.approx(-20)  # seed 0 alone at 4000
+    entry = summary.reach.paper_protocol["PETS"]  # the mean: -40, -35, then undefined
+    assert entry.step is None and entry.last_step == 2000 and entry.per_seed == {"0": 4000, "1": None}
+
+
 def test_an_unfinished_run_does_not_lower_the_matched_step() -> None:
     """An unfinished run's early policy evaluations do not move the matched step below the complete runs' schedule."""
     complete = [
