@@ -277,11 +277,12 @@ def test_report_only_includes_unfinished_runs_as_far_as_they_got(tmp_path: Path,
     assert "2 of 4 runs are unfinished" in capsys.readouterr().out
     table = (report / "results.md").read_text()
     # the matched step is the complete runs' (2000): seed 2 reached it (30), seed 3 did not and has no value there
-    assert "| Pendulum-v1 | 2000 | 20.0 ± 8.2 (3 seeds, 1 unfinished) |" in table
+    assert "| Pendulum-v1 | 2000 | 20.0 ± 8.2 (3 seeds, 1 unfinished, 1 not at 2000 yet) |" in table
     assert "| Pendulum-v1 | PETS | 2 | 2000 |" in table and "| Pendulum-v1 | PETS | 3 | 1000 |" in table
     results = json.loads((report / "results.json").read_text())
     task = results["tasks"][0]
-    assert task["unfinished"] == {"PETS (MPC)": 1}
+    assert task["unfinished"] == {"PETS (MPC)": 1} and task["short"] == {"PETS (MPC)": 1}
+    assert task["interrupted"] == {"pets": 2}
     assert [run.get("unfinished", False) for run in results["runs"]] == [False, False, True, True]
     # the paper's protocol at the budget (2000) leaves out seed 3, which stopped at 1000 steps
     assert task["paper_protocol"]["labels"]["PETS"]["seeds"] == [0, 1, 2]
@@ -328,6 +329,19 @@ def test_the_reach_tables_last_step_is_the_last_one_the_mean_covers() -> None:
     assert summary.reach is not None and summary.reach.paper_target == pytest.approx(-20)  # seed 0 alone at 4000
     entry = summary.reach.paper_protocol["PETS"]  # the mean: -40, -35, then undefined
     assert entry.step is None and entry.last_step == 2000 and entry.per_seed == {"0": 4000, "1": None}
+    # seed 1 did not reach it by 2000, where it stopped: not "never"
+    assert entry.short == {"1": 2000} and entry.to_json()["short"] == {"1": 2000}
+    assert compare_module.report._reach_cell(entry) == "not by 2000 (s0: 4000, s1: not by 2000)"
+    assert "short" not in summary.reach.evaluation["PETS (MPC)"].to_json()  # one seed: none shorter
+    # one seed has no spread to show; the cell of a column whose one unfinished run is short of the matched step
+    protocol = summary.paper_protocol.labels["PETS"]
+    assert protocol.seeds == [0] and compare_module.report._mean_cell(protocol) == "-20.0 (1 seed)"
+    assert compare_module.report._seeds_cell(protocol) == "-20.0 (s0: -20)"
+    # (seed 1 interrupted before its first evaluation: it has no curve at all)
+    summary = compare_module.summarize("Pendulum-v1", [curve], {}, {"pets": 4}, missing={"pets": 2}, interrupted={"pets": 1})
+    assert summary.matched_step == 2000 and summary.short("PETS (MPC)") == 1
+    assert compare_module.format_cell(summary, "PETS (MPC)", "pets") == "20.0 (1 seed, 2 missing, 1 not at 2000 yet)"
+    assert summary.to_json()["short"] == {"PETS (MPC)": 1}
 
 
 def test_an_unfinished_run_does_not_lower_the_matched_step() -> None:

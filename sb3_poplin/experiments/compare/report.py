@@ -167,12 +167,21 @@ class ReachEntry:
 
     :param step: the first step of the mean curve over seeds at or above the target (``None``: never)
     :param per_seed: seed (as text) -> its curve's first step at or above the target (``None``: never)
-    :param last_step: the last step the curves reached
+    :param last_step: the last step the mean curve is defined at (the shortest seed's last)
+    :param short: seed (as text) -> the last step of its curve, for the seeds whose curve ends before the longest
+        one's (interrupted runs): their ``None`` in ``per_seed`` means "not by then", not "never"
     """
 
     step: int | None
     per_seed: dict[str, int | None]
     last_step: int
+    short: dict[str, int] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        entry = asdict(self)
+        if not self.short:
+            del entry["short"]
+        return entry
 
 
 @dataclass
@@ -197,11 +206,11 @@ class Reach:
         entry: dict[str, Any] = {
             "reference": self.reference,
             "target": self.target,
-            "evaluation": {label: asdict(reach) for label, reach in self.evaluation.items()},
+            "evaluation": {label: reach.to_json() for label, reach in self.evaluation.items()},
         }
         if self.paper_target is not None:
             entry["paper_target"] = self.paper_target
-            entry["paper_protocol"] = {label: asdict(reach) for label, reach in self.paper_protocol.items()}
+            entry["paper_protocol"] = {label: reach.to_json() for label, reach in self.paper_protocol.items()}
         return entry
 
 
@@ -239,6 +248,8 @@ class TaskSummary:
     :param paper_protocol: the paper's protocol
     :param unfinished: column label -> its seeds that are interrupted runs, reported as far as they got
         (``--include-unfinished``)
+    :param interrupted: algorithm -> its interrupted runs (``--include-unfinished``), with a value at
+        ``matched_step`` or not (:meth:`short`)
     :param reach: the steps to reach the reference's final return (``None``: no reference column ran)
     :param name: the task's name in the tables (the paper's, in the paper suite)
     :param protocol_at: the paper's protocol at more steps (``--protocol-steps``), in order
@@ -255,9 +266,14 @@ class TaskSummary:
     name: str = ""
     protocol_at: list[ProtocolSummary] = field(default_factory=list)
     unfinished: dict[str, int] = field(default_factory=dict)
+    interrupted: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.name = self.name or self.env
+
+    def short(self, label: str) -> int:
+        """:return: the column's interrupted runs that have no value at the matched step (not there yet)"""
+        return self.interrupted.get(label_algo(label), 0) - self.unfinished.get(label, 0)
 
     def to_json(self) -> dict[str, Any]:
         """The task's entry of ``results.json``."""
@@ -277,6 +293,9 @@ class TaskSummary:
             entry["paper_protocol_at"] = [protocol.to_json() for protocol in self.protocol_at]
         if self.unfinished:
             entry["unfinished"] = self.unfinished
+        if self.interrupted:
+            entry["interrupted"] = self.interrupted
+            entry["short"] = {label: self.short(label) for label in self.labels if self.short(label)}
         return entry
 
 
@@ -289,12 +308,17 @@ def reach_entry(steps: np.ndarray, per_seed: list[np.ndarray], seeds: list[int],
     :return: the first step of the mean curve (over seeds) and of each seed's curve that reached ``target``
     """
     mean = np.mean(np.stack(per_seed), axis=0)
-    pairs = zip(seeds, per_seed, strict=True)
     defined = np.flatnonzero(np.isfinite(mean))  # the mean is undefined past the end of an unfinished seed
+    ends = {}
+    for seed, values in zip(seeds, per_seed, strict=True):
+        finite = np.flatnonzero(np.isfinite(values))
+        ends[str(seed)] = int(steps[finite[-1]]) if len(finite) else int(steps[0])
+    longest = max(ends.values())
     return ReachEntry(
         first_step_reaching(steps, mean, target),
-        {str(seed): first_step_reaching(steps, values, target) for seed, values in pairs},
+        {str(seed): first_step_reaching(steps, values, target) for seed, values in zip(seeds, per_seed, strict=True)},
         int(steps[defined[-1]] if len(defined) else steps[-1]),
+        {seed: end for seed, end in ends.items() if end < longest},
     )
 
 
@@ -336,6 +360,7 @@ def summarize(
     reference: str | None = None,
     missing: dict[str, int] | None = None,
     protocol_steps: list[int] | None = None,
+    interrupted: dict[str, int] | None = None,
 ) -> TaskSummary:
     """
     Final returns of one task at the matched step (the last evaluation step every run reached), by the paper's
@@ -351,6 +376,7 @@ def summarize(
     :param reference: the column whose final return the others must reach (``None`` or absent: no reach table)
     :param missing: algorithm -> runs not found and not started (``--report-only``)
     :param protocol_steps: more steps to apply the paper's protocol at (a learning curve by the paper's measure)
+    :param interrupted: algorithm -> its interrupted runs (``--include-unfinished``)
     """
     # the last step every complete run reached (only unfinished ones: every run); an unfinished run that did not reach
     # it, or a curve with no evaluation by then, has no value there
@@ -366,7 +392,17 @@ def summarize(
             unfinished[curve.label] = unfinished.get(curve.label, 0) + 1
     training = training or []
     protocol = paper_protocol(training, budget_step, window)
-    summary = TaskSummary(env, matched, labels, failed, expected, dict(missing or {}), protocol, unfinished=unfinished)
+    summary = TaskSummary(
+        env,
+        matched,
+        labels,
+        failed,
+        expected,
+        dict(missing or {}),
+        protocol,
+        unfinished=unfinished,
+        interrupted=dict(interrupted or {}),
+    )
     summary.protocol_at = [paper_protocol(training, step, window) for step in protocol_steps or []]
     if reference is None or reference not in labels:
         return summary
@@ -395,20 +431,20 @@ def format_cell(summary: TaskSummary, label: str, algo: str) -> str:
     :param label: column label
     :param algo: the label's algorithm
     :return: the table cell: mean ± std over seeds, the number of seeds, of failed runs, of missing ones (not run
-        yet: ``--report-only``) and of unfinished ones among the seeds (``--include-unfinished``)
+        yet: ``--report-only``), of unfinished ones among the seeds and of unfinished ones that have not reached the
+        matched step yet (``--include-unfinished``)
     """
     entry = summary.labels.get(label)
     absent = {"failed": summary.failed.get(algo, 0), "missing": summary.missing.get(algo, 0)}
     if summary.unfinished.get(label, 0):
         absent["unfinished"] = summary.unfinished[label]
+    if summary.short(label):
+        absent[f"not at {summary.matched_step} yet"] = summary.short(label)
     note = "".join(f", {count} {kind}" for kind, count in absent.items() if count)
     if entry is None:
         expected = summary.expected.get(algo, 0)
         return ", ".join(f"{kind} ({count}/{expected})" for kind, count in absent.items() if count) or "—"
-    n_seeds = len(entry.values)
-    if n_seeds == 1:
-        return f"{entry.mean:.1f} (1 seed{note})"
-    return f"{entry.mean:.1f} ± {entry.std:.1f} ({n_seeds} seeds{note})"
+    return f"{_spread(entry)} ({_seeds(len(entry.values))}{note})"
 
 
 def label_algo(label: str) -> str:
@@ -434,24 +470,34 @@ def table_labels(summaries: list[TaskSummary]) -> list[str]:
     return labels
 
 
+def _spread(entry: SeedValues) -> str:
+    """The mean, and the std over seeds where there are several (one seed has no spread to show)."""
+    return f"{entry.mean:.1f}" if len(entry.values) == 1 else f"{entry.mean:.1f} ± {entry.std:.1f}"
+
+
 def _mean_cell(entry: SeedValues | None) -> str:
     if entry is None:
         return "—"
-    n_seeds = len(entry.values)
-    return f"{entry.mean:.1f} ± {entry.std:.1f} ({n_seeds} seed{'s' if n_seeds > 1 else ''})"
+    return f"{_spread(entry)} ({_seeds(len(entry.values))})"
 
 
 def _seeds_cell(entry: SeedValues | None) -> str:
     if entry is None:
         return "—"
     values = ", ".join(f"s{seed}: {value:.0f}" for seed, value in zip(entry.seeds, entry.values, strict=True))
-    return f"{entry.mean:.1f} ± {entry.std:.1f} ({values})"
+    return f"{_spread(entry)} ({values})"
 
 
 def _reach_cell(entry: ReachEntry | None) -> str:
     if entry is None:
         return "—"
-    per_seed = ", ".join(f"s{seed}: {'—' if step is None else step}" for seed, step in entry.per_seed.items())
+
+    def seed_cell(seed: str, step: int | None) -> str:
+        if step is not None:
+            return str(step)
+        return f"not by {entry.short[seed]}" if seed in entry.short else "—"
+
+    per_seed = ", ".join(f"s{seed}: {seed_cell(seed, step)}" for seed, step in entry.per_seed.items())
     first = f"not by {entry.last_step}" if entry.step is None else str(entry.step)
     return f"{first} ({per_seed})"
 
@@ -498,7 +544,8 @@ def protocol_lines(summaries: list[TaskSummary]) -> list[str]:
             "",
             "The first step at which the mean curve over seeds reached the reference column's final return (mean over",
             "seeds at the matched step; by the paper's protocol: its training-episode return), then each seed's",
-            "(— never). Evaluation steps are the evaluation schedule; the paper's protocol checks every episode end.",
+            '(— never; "not by N": an interrupted run that stopped at N). Evaluation steps are the evaluation',
+            "schedule; the paper's protocol checks every episode end.",
             "",
             "| task | column | evaluation: target | first step | paper's protocol: target | first step |",
             "|---|---|---|---|---|---|",
@@ -681,15 +728,20 @@ def write_report(
         failed: dict[str, int] = {}
         missing: dict[str, int] = {}
         expected: dict[str, int] = {}
+        interrupted: dict[str, int] = {}
         for result in env_results:
             expected[result.job.column] = expected.get(result.job.column, 0) + 1
+            if result.unfinished:
+                interrupted[result.job.column] = interrupted.get(result.job.column, 0) + 1
             if result.run_dir is None:
                 absent = missing if result.missing else failed
                 absent[result.job.column] = absent.get(result.job.column, 0) + 1
         found = [result for result in env_results if result.run_dir is not None]
         training = [episodes for result in found if (episodes := load_training(result)) is not None]
         budget_step = min((result.job.n_timesteps for result in env_results), default=None)
-        summary = summarize(env, curves, failed, expected, training, budget_step, window, reference, missing, protocol_steps)
+        summary = summarize(
+            env, curves, failed, expected, training, budget_step, window, reference, missing, protocol_steps, interrupted
+        )
         summary.name = (paper_names or {}).get(env, env)
         summaries.append(summary)
         if curves:
