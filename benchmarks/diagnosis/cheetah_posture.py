@@ -3,15 +3,24 @@ Is a high half-cheetah return a run or a flip? MPC episodes of saved agents with
 
 Planners on the half-cheetah sometimes find that the cheetah moves fastest on its back; such episodes score far above
 upright running and make the spread over seeds bimodal. For each model and start seed this prints the MPC return and
-the share of steps with the torso pitch beyond ±90° (upside down), from ``qpos[2]`` of the MuJoCo state.
+the share of steps with the torso pitch beyond ±90° (upside down) and the net full turns of the torso, from
+``qpos[2]`` of the MuJoCo state.
 
     python benchmarks/diagnosis/cheetah_posture.py --env sb3_poplin/PETSCheetah-v0 --models a.zip b.zip --seeds 1000 1001
+
+``--record FILE`` also appends each result to a JSON-lines file with the date, the command and the repository's
+commit, and ``--tag KEY=VALUE`` adds fields to those lines (which run, which column, which seed).
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
+import shlex
+import subprocess
+import sys
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -26,6 +35,17 @@ def upside_down_share(pitches: np.ndarray) -> float:
     """:return: the share of pitches (rad, accumulated over full turns) that point the torso's top downwards"""
     wrapped = np.angle(np.exp(1j * np.asarray(pitches, dtype=np.float64)))  # to (-pi, pi]
     return float(np.mean(np.abs(wrapped) > np.pi / 2))
+
+
+def net_turns(pitches: np.ndarray) -> float:
+    """
+    :param pitches: the torso's pitch (rad, accumulated over full turns) along an episode, its start first
+    :return: the signed number of full turns from the first pitch to the last (the sign is the ``rooty`` joint's
+        axis); a gait that keeps somersaulting has a large ``|turns|``, one that rolls onto its back and stays there
+        about half a turn
+    """
+    pitches = np.asarray(pitches, dtype=np.float64)
+    return float((pitches[-1] - pitches[0]) / (2 * np.pi))
 
 
 def pitch_index(env: gym.Env) -> int:
@@ -50,7 +70,8 @@ def posture_episode(model: POPLIN, env: gym.Env, seed: int, steps: int, pitch: i
     One MPC episode (:func:`sb3_poplin.analysis.model_error.mpc_episode`, as ``diagnose_mpc.py`` plans).
 
     :param pitch: the pitch's index in the observation (:func:`pitch_index` of ``env``)
-    :return: the MPC return, the share of steps upside down (``|pitch| > pi/2``) and the largest ``|pitch|`` (rad)
+    :return: the MPC return, the share of steps upside down (``|pitch| > pi/2``), the largest ``|pitch|`` (rad) and
+        the net full turns (:func:`net_turns`)
     """
     episode = mpc_episode(model.mpc, env, steps, seed)
     pitches = episode.obs[1:, pitch]  # after each step
@@ -58,7 +79,30 @@ def posture_episode(model: POPLIN, env: gym.Env, seed: int, steps: int, pitch: i
         "return": float(episode.rewards.sum()),
         "upside_down": upside_down_share(pitches),
         "max_abs_pitch": float(np.max(np.abs(pitches))),
+        "turns": net_turns(episode.obs[:, pitch]),  # from the start
     }
+
+
+def parse_tags(tags: list[str]) -> dict[str, str]:
+    """:return: ``KEY=VALUE`` strings as a mapping (a clear error for any other spelling)"""
+    parsed = {}
+    for tag in tags:
+        key, separator, value = tag.partition("=")
+        if not separator or not key:
+            raise SystemExit(f"--tag takes KEY=VALUE, e.g. --tag column=PETS; got {tag!r}")
+        parsed[key] = value
+    return parsed
+
+
+def code_commit() -> str:
+    """:return: the commit of the repository this script is in (``unknown`` outside a git checkout)"""
+    try:
+        found = subprocess.run(
+            ["git", "-C", str(Path(__file__).parent), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+        )
+    except OSError:
+        return "unknown"
+    return found.stdout.strip() or "unknown"
 
 
 def main() -> None:
@@ -68,7 +112,17 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1000])
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--record", type=Path, help="a JSON-lines file to append each result to")
+    parser.add_argument("--tag", nargs="*", default=[], metavar="KEY=VALUE", help="fields added to the recorded lines")
     args = parser.parse_args()
+    tags = parse_tags(args.tag)
+    if tags and args.record is None:
+        raise SystemExit("--tag adds fields to the lines of --record FILE: give --record too")
+    provenance = {
+        "date": datetime.date.today().isoformat(),
+        "command": shlex.join(["python", "benchmarks/diagnosis/cheetah_posture.py", *sys.argv[1:]]),
+        "code": code_commit(),
+    }
     th.set_num_threads(args.threads)
     env = make_env(args.env)
     pitch = pitch_index(env)  # once, and before loading any model: it resets the env
@@ -77,6 +131,10 @@ def main() -> None:
         for seed in args.seeds:
             result = posture_episode(model, env, seed, args.steps, pitch)
             print(json.dumps({"model": path, "seed": seed, **result}), flush=True)
+            if args.record is not None:
+                line = {**tags, "model": path, "start_seed": seed, **result, **provenance}
+                with open(args.record, "a") as file:
+                    file.write(json.dumps(line) + "\n")
 
 
 if __name__ == "__main__":

@@ -91,6 +91,12 @@ def test_cheetah_posture_counts_upside_down_pitches_over_full_turns():
     posture = load_benchmark("cheetah_posture")
     pitches = np.array([0.0, 1.5, 1.7, -3.0, 2 * np.pi + 0.1, 2 * np.pi + 3.0, -4 * np.pi - 2.0, 1.0])
     assert posture.upside_down_share(pitches) == pytest.approx(4 / 8)  # 1.7, -3.0, 2π+3.0, -4π-2.0
+    # net turns count the first pitch to the last, whatever happened between: 1.0 - 0.0 over 2π; backwards negative
+    assert posture.net_turns(pitches) == pytest.approx(1.0 / (2 * np.pi))
+    assert posture.net_turns(np.array([0.5, -3.0, -6 * np.pi + 0.5])) == pytest.approx(-3.0)
+    assert posture.parse_tags(["column=PETS", "run=poplin/a=b"]) == {"column": "PETS", "run": "poplin/a=b"}
+    with pytest.raises(SystemExit, match=r"--tag takes KEY=VALUE, e.g. --tag column=PETS; got 'PETS'"):
+        posture.parse_tags(["PETS"])
 
 
 @pytest.mark.parametrize(

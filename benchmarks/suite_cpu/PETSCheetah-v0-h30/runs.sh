@@ -8,6 +8,8 @@
 #   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh sync            # the runs' small files and latest checkpoints here
 #   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh restore COLUMN  # what start restores first (ROOT lacks a run)
 #   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh report COLUMN   # the column's report from what exists
+#   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh posture         # the posture check of each complete run's final
+#                                                                    # agent not in posture.jsonl yet (~5 min a run)
 #   benchmarks/suite_cpu/PETSCheetah-v0-h30/runs.sh status
 #
 # COLUMN: headline (PETS and POPLIN-P Sep/Avg, seeds 0-3; its report has the baselines too), baselines (SAC and TD3
@@ -150,6 +152,21 @@ the training episodes that ended in the last 3000 steps). The paper's planner ha
 | the paper, 50k steps | 12228 ± 5653 | 4651 ± 1089 | 4205 ± 789 | 1746 ± 839 | 219 ± 593 |
 PAPER
         ;;
+    posture)  # with the repository's code (the agents were trained by PIN), one 1000-step MPC episode from seed 1000
+        for marker in "$ROOT"/logs/*/*/*/compare_complete.json; do
+            [ -e "$marker" ] || continue
+            run=$(dirname "$marker"); relative=${run#"$ROOT/logs/"}; relative=${relative#*/}  # <algo>/<run>
+            final=$run/$(basename "$(dirname "$TASK")")-$(basename "$TASK").zip
+            [ -e "$final" ] || { echo "$relative: no final agent, skipped" >&2; continue; }
+            grep -qF "\"run\": \"$relative\"" "$HERE/posture.jsonl" 2>/dev/null && continue
+            read -r column seed < <("$REPO/.venv/bin/python" -c 'import json, sys
+job = json.load(open(sys.argv[1]))["job"]  # e.g. poplin-p_sb3_poplin-PETSCheetah-v0_seed0
+print(job.split("_")[0].upper(), job.rsplit("_seed", 1)[1])' "$marker")
+            echo "posture of $column seed $seed ($relative)"
+            (cd "$REPO" && "$REPO/.venv/bin/python" benchmarks/diagnosis/cheetah_posture.py --env "$TASK" \
+                --models "$final" --seeds 1000 --record "$HERE/posture.jsonl" \
+                --tag "column=$column" "seed=$seed" "run=$relative" "trained_by=$PIN")
+        done ;;
     status)
         pgrep -af "sb3_poplin(.experiments)?.zoo train" | sed 's/ -params.*//' || echo "no run is training"
         for log in "$ROOT"/logs/*/compare_logs/*.log; do
