@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import platform
+import subprocess
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "RESULTS.md")
 
@@ -69,3 +70,16 @@ def describe_machine(threads: int | None = None, device: object = None) -> str:
     if threads is not None:
         parts.append(f"{threads} thread(s)")
     return ", ".join(parts)
+
+
+def code_version() -> str:
+    """The commit of this repository's checkout, ``+changes`` when the working tree differs from it (``unknown``
+    outside a git checkout)."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=here)
+        changed = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=here).returncode
+    except OSError:
+        return "unknown"
+    commit = head.stdout.strip()
+    return (commit + ("+changes" if changed else "")) if commit else "unknown"

@@ -17,8 +17,8 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import os
 import shlex
-import subprocess
 import sys
 from pathlib import Path
 
@@ -29,6 +29,10 @@ import torch as th
 from sb3_poplin import POPLIN
 from sb3_poplin.analysis.model_error import mpc_episode
 from sb3_poplin.tasks import make_env
+
+# benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from results_file import code_version
 
 
 def upside_down_share(pitches: np.ndarray) -> float:
@@ -94,17 +98,6 @@ def parse_tags(tags: list[str]) -> dict[str, str]:
     return parsed
 
 
-def code_commit() -> str:
-    """:return: the commit of the repository this script is in (``unknown`` outside a git checkout)"""
-    try:
-        found = subprocess.run(
-            ["git", "-C", str(Path(__file__).parent), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-        )
-    except OSError:
-        return "unknown"
-    return found.stdout.strip() or "unknown"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", required=True, help="a half-cheetah task id (HalfCheetah-v5, sb3_poplin/PETSCheetah-v0)")
@@ -121,7 +114,7 @@ def main() -> None:
     provenance = {
         "date": datetime.date.today().isoformat(),
         "command": shlex.join(["python", "benchmarks/diagnosis/cheetah_posture.py", *sys.argv[1:]]),
-        "code": code_commit(),
+        "code": code_version(),
     }
     th.set_num_threads(args.threads)
     env = make_env(args.env)

@@ -40,7 +40,6 @@ import datetime
 import json
 import multiprocessing
 import os
-import subprocess
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -55,7 +54,7 @@ from sb3_poplin.variants import DEFAULT_SETTINGS, ORIGINAL_CODE_SETTINGS, config
 
 # benchmarks/, where results_file.py (shared by the scripts of every subfolder) lives
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from results_file import describe_machine
+from results_file import code_version, describe_machine
 
 HERE = Path(__file__).resolve().parent
 # the run records stay in benchmarks/fidelity_ab/ (committed), beside the other result folders, not in probes/
@@ -145,12 +144,6 @@ def run_path(task: str, config: str, arm: str, seed: int) -> Path:
 
 def model_path(task: str, config: str, arm: str, seed: int) -> Path:
     return MODELS / run_path(task, config, arm, seed).relative_to(OUTPUT).with_suffix(".zip")
-
-
-def code_version() -> str:
-    """The commit checked out, ``+changes`` when the working tree differs from it."""
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE).stdout.strip()
-    return head + ("+changes" if subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=HERE).returncode else "")
 
 
 def run_one(
