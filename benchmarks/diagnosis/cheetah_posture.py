@@ -87,14 +87,26 @@ def posture_episode(model: POPLIN, env: gym.Env, seed: int, steps: int, pitch: i
     }
 
 
-def parse_tags(tags: list[str]) -> dict[str, str]:
-    """:return: ``KEY=VALUE`` strings as a mapping (a clear error for any other spelling)"""
-    parsed = {}
+INTEGER_TAGS = ("seed",)  # recorded as numbers, as the lines' own seeds are (a commit such as 1234567 stays text)
+
+
+def parse_tags(tags: list[str]) -> dict[str, str | int]:
+    """
+    :return: ``KEY=VALUE`` strings as a mapping, the values of :data:`INTEGER_TAGS` as integers (``seed=1`` is
+        recorded as ``1``, not ``"1"``); a clear error for any other spelling
+    """
+    parsed: dict[str, str | int] = {}
     for tag in tags:
         key, separator, value = tag.partition("=")
         if not separator or not key:
             raise SystemExit(f"--tag takes KEY=VALUE, e.g. --tag column=PETS; got {tag!r}")
-        parsed[key] = value
+        if key in INTEGER_TAGS:
+            try:
+                parsed[key] = int(value)
+            except ValueError:
+                raise SystemExit(f"--tag {key}= takes an integer (e.g. {key}=1); got {value!r}") from None
+        else:
+            parsed[key] = value
     return parsed
 
 

@@ -97,6 +97,10 @@ def test_cheetah_posture_counts_upside_down_pitches_over_full_turns():
     assert posture.parse_tags(["column=PETS", "run=poplin/a=b"]) == {"column": "PETS", "run": "poplin/a=b"}
     with pytest.raises(SystemExit, match=r"--tag takes KEY=VALUE, e.g. --tag column=PETS; got 'PETS'"):
         posture.parse_tags(["PETS"])
+    # a seed is recorded as a number, as the lines' own seeds are; a commit of digits stays text
+    assert posture.parse_tags(["seed=1", "trained_by=1234567"]) == {"seed": 1, "trained_by": "1234567"}
+    with pytest.raises(SystemExit, match=r"--tag seed= takes an integer \(e.g. seed=1\); got 'one'"):
+        posture.parse_tags(["seed=one"])
 
 
 @pytest.mark.parametrize(
