@@ -72,14 +72,26 @@ def describe_machine(threads: int | None = None, device: object = None) -> str:
     return ", ".join(parts)
 
 
-def code_version() -> str:
-    """The commit of this repository's checkout, ``+changes`` when the working tree differs from it (``unknown``
-    outside a git checkout)."""
-    here = os.path.dirname(os.path.abspath(__file__))
+# what a run's behaviour depends on: a changed data file (a synced run's csv, json or config.yml, RESULTS.md) is not
+# a change of the code that made a record
+CODE_PATHS = ("*.py", "sb3_poplin", "setup.cfg", "pyproject.toml", "Makefile")
+
+
+def code_version(where: str | None = None) -> str:
+    """
+    The commit of this repository's checkout, ``+changes`` when its code (``CODE_PATHS``: Python files, the package
+    with its hyperparameter files, the build files) differs from it; ``unknown`` outside a git checkout.
+
+    :param where: a folder inside the checkout (default: this file's)
+    """
+    here = where if where is not None else os.path.dirname(os.path.abspath(__file__))
     try:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=here)
-        changed = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=here).returncode
+        top = subprocess.run(["git", "rev-parse", "--show-toplevel"], capture_output=True, text=True, cwd=here)
+        changed = subprocess.run(
+            ["git", "diff", "--quiet", "HEAD", "--", *CODE_PATHS], cwd=top.stdout.strip() or here
+        ).returncode
     except OSError:
         return "unknown"
     commit = head.stdout.strip()
-    return (commit + ("+changes" if changed else "")) if commit else "unknown"
+    return (commit + ("+changes" if changed else "")) if commit and head.returncode == 0 else "unknown"

@@ -205,3 +205,45 @@ def test_a_row_goes_below_the_table_not_below_the_text_after_it(tmp_path: Path) 
     # a section without its table (the header changed): the row goes to the section's end, before the next heading
     results.append_row("Speed", "intro", ["a", "b", "c"], ["6", "7", "8"], path=str(path))
     assert "Reading of the rows above.\n| 6 | 7 | 8 |\n\n## Other" in path.read_text()
+
+
+def test_code_version_marks_changed_code_not_changed_data(tmp_path: Path) -> None:
+    """A record's ``code``: ``+changes`` for an edited or staged Python, package or build file; a synced run's data
+    files (csv, json, config.yml outside the package) and RESULTS.md leave it the bare commit."""
+    import subprocess
+
+    results = load_benchmark("results_file")
+    repo = tmp_path / "repo"
+    (repo / "sb3_poplin" / "hyperparams").mkdir(parents=True)
+    (repo / "benchmarks" / "suite" / "zoo").mkdir(parents=True)
+    files = {
+        "benchmarks/compare.py": "x = 1\n",
+        "sb3_poplin/hyperparams/poplin.yml": "a: 1\n",
+        "setup.cfg": "[metadata]\n",
+        "benchmarks/suite/zoo/config.yml": "seed: 0\n",
+        "benchmarks/suite/zoo/monitor.csv": "r,l\n",
+        "benchmarks/RESULTS.md": "# results\n",
+    }
+    for name, text in files.items():
+        (repo / name).write_text(text)
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=repo, check=True, capture_output=True, text=True).stdout.strip()
+
+    git("init", "-q")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "start")
+    commit = git("rev-parse", "--short", "HEAD")
+    where = str(repo / "benchmarks")
+    assert results.code_version(where) == commit
+    for data in ("benchmarks/suite/zoo/config.yml", "benchmarks/suite/zoo/monitor.csv", "benchmarks/RESULTS.md"):
+        (repo / data).write_text(files[data] + "more\n")
+    assert results.code_version(where) == commit  # data changed only
+    for code in ("benchmarks/compare.py", "sb3_poplin/hyperparams/poplin.yml", "setup.cfg"):
+        (repo / code).write_text(files[code] + "# edited\n")
+        assert results.code_version(where) == commit + "+changes", code
+        git("add", code)  # staged, not committed: still a change
+        assert results.code_version(where) == commit + "+changes", code
+        git("checkout", "HEAD", "--", code)
+    assert results.code_version(where) == commit
+    assert results.code_version(str(tmp_path)) == "unknown"  # not a checkout
