@@ -571,13 +571,18 @@ class POPLIN(OffPolicyAlgorithm):
         does; a setting given as a keyword, ``model_hooks=`` too, replaces the saved one), plus:
 
         :param control: ``"mpc"`` or ``"policy"`` to override the saved control mode
+        :raises TypeError: a keyword that is neither a setting nor an attribute the zip holds (SB3 would set a
+            misspelt ``populaton_size=`` on the agent, where nothing reads it)
         """
         if kwargs.get("model_hooks") is None:  # model_hooks=None: the saved ones
             kwargs.pop("model_hooks", None)
             if (custom_objects or {}).get("model_hooks") is not None:  # also for a zip without the record
                 kwargs["model_hooks"] = custom_objects["model_hooks"]  # type: ignore[index]
         # a zip of an earlier release continues as it was trained (sb3_poplin.compat)
-        kwargs = {**saving.check_saved_agent(path, custom_objects, hooks_given="model_hooks" in kwargs), **kwargs}
+        restored = saving.check_saved_agent(
+            path, custom_objects, hooks_given="model_hooks" in kwargs, given=kwargs, settings=variants.SETTINGS
+        )
+        kwargs = {**restored, **kwargs}
         if isinstance(env, str):  # an env id, as the constructor takes
             env = gym.make(env, **task_env_kwargs(env))
         model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)

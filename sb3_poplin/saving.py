@@ -10,12 +10,14 @@ planned steps not yet distilled and the distillation window), and in ``data`` th
 
 from __future__ import annotations
 
+import difflib
 import io
 import json
 import os
 import pathlib
 import warnings
 import zipfile
+from collections.abc import Iterable
 from typing import Any
 
 from sb3_poplin import compat
@@ -29,18 +31,28 @@ def current_release() -> str:
 
 
 def check_saved_agent(
-    path: str | pathlib.Path | io.BufferedIOBase, custom_objects: dict[str, Any] | None = None, hooks_given: bool = False
+    path: str | pathlib.Path | io.BufferedIOBase,
+    custom_objects: dict[str, Any] | None = None,
+    hooks_given: bool = False,
+    given: Iterable[str] = (),
+    settings: Iterable[str] = (),
 ) -> dict[str, Any]:
     """
-    Reject, with the reason and the fix, anything that is not a complete POPLIN zip.
+    Reject, with the reason and the fix, anything that is not a complete POPLIN zip, and keywords of ``load`` that
+    would set nothing an agent reads.
 
     :param path: what was given to ``POPLIN.load``
     :param custom_objects: ``load``'s
     :param hooks_given: ``load`` was given ``model_hooks=``
+    :param given: the names of the keywords ``load`` was given to replace saved attributes (SB3 sets each on the
+        agent, a misspelt one too, where it is then never read)
+    :param settings: the names of the agent's settings (:class:`sb3_poplin.variants.Settings`): each may be given,
+        also to a zip of an earlier release that does not hold it
     :return: the attributes to restore with the agent that a zip of an earlier release does not hold
         (:func:`sb3_poplin.compat.legacy_attributes`); none for a zip of this release
     :raises FileNotFoundError: no file at ``path`` (nor ``path.zip``)
     :raises ValueError: not a zip, corrupted, saved by another algorithm, or incomplete
+    :raises TypeError: a keyword in ``given`` that is neither a setting nor an attribute the zip holds
     """
     where = str(path) if isinstance(path, (str, pathlib.Path)) else "the given file object"
     if isinstance(path, (str, pathlib.Path)) and not os.path.exists(path):
@@ -87,7 +99,19 @@ def check_saved_agent(
         )
     if "model_hooks" in data and not hooks_given:
         check_saved_hooks(data["model_hooks"], where)
-    return compat.legacy_attributes(names, data, where, custom_objects, hooks_given)
+    restored = compat.legacy_attributes(names, data, where, custom_objects, hooks_given)
+    known = {*settings, *data, *restored, "model_hooks"}
+    unknown = [key for key in given if key not in known]
+    if unknown:
+        hints = []
+        for key in unknown:
+            close = difflib.get_close_matches(key, sorted(known), 1)
+            hints.append(f"{key!r} (did you mean {close[0]!r}?)" if close else repr(key))
+        raise TypeError(
+            f"POPLIN.load() got keyword(s) {', '.join(hints)} that are neither a setting of a POPLIN agent nor an "
+            f"attribute {where} holds: they would be set on the agent and never read. Settings: {', '.join(settings)}."
+        )
+    return restored
 
 
 def check_saved_hooks(serialized: Any, where: str) -> None:

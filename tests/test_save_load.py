@@ -229,3 +229,24 @@ def test_hooks_given_through_custom_objects_or_unreadable_saved_ones(tmp_path: P
         tmp_path / "unreadable.zip", model_hooks=agent.model_hooks, custom_objects={"model_hooks": None, "policy_kwargs": {}}
     )
     assert fixed.model_hooks == agent.model_hooks
+
+
+def test_load_takes_settings_and_saved_attributes_and_rejects_misspelt_keywords(tmp_path: Path) -> None:
+    """A setting given to ``load`` replaces the saved one in the planner it builds (the budget of a trained agent
+    changed for an evaluation); a keyword that is neither a setting nor in the zip is a TypeError that names it and
+    the close setting, where SB3 would set it on the agent and plan with the saved value."""
+    tiny().save(tmp_path / "agent")
+    loaded = POPLIN.load(tmp_path / "agent", population_size=12, num_elites=3, seed=5, verbose=0)
+    assert (loaded.settings.population_size, loaded.settings.num_elites) == (12, 3)
+    assert (loaded.mpc.planner.optimizer.population_size, loaded.mpc.planner.optimizer.num_elites) == (12, 3)
+    assert POPLIN.load(tmp_path / "agent").mpc.planner.optimizer.population_size == TINY["population_size"]
+    with pytest.raises(TypeError, match=r"'populaton_size' \(did you mean 'population_size'\?\).*never read"):
+        POPLIN.load(tmp_path / "agent", populaton_size=12)
+    with pytest.raises(TypeError, match=r"'no_such_thing' that are neither a setting"):
+        POPLIN.load(tmp_path / "agent", horizon=3, no_such_thing=1)
+    with pytest.raises(ValueError, match=r"num_elites must be between 1 and population_size \(20\), got 30"):
+        POPLIN.load(tmp_path / "agent", num_elites=30)  # a setting's value is checked as the constructor does
+    # a zip of a release before a setting existed takes it too (it is not in its data: iCEM came in 0.4.0)
+    old = DATA / "legacy-0.1.0-pets.zip"
+    assert "optimizer" not in saved_data(old)
+    assert POPLIN.load(old, env=gym.make("Pendulum-v1"), optimizer="icem").settings.optimizer == "icem"

@@ -9,7 +9,9 @@ the share of steps with the torso pitch beyond ±90° (upside down) and the net 
     python benchmarks/diagnosis/cheetah_posture.py --env sb3_poplin/PETSCheetah-v0 --models a.zip b.zip --seeds 1000 1001
 
 ``--record FILE`` also appends each result to a JSON-lines file with the date, the command and the repository's
-commit, and ``--tag KEY=VALUE`` adds fields to those lines (which run, which column, which seed).
+commit, and ``--tag KEY=VALUE`` adds fields to those lines (which run, which column, which seed). ``--set KEY=VALUE``
+loads the agents with settings that replace the saved ones (``population_size=500 num_elites=50``: the trained agent
+planning at another budget than it was trained with; a misspelt setting is an error, ``POPLIN.load``'s).
 """
 
 from __future__ import annotations
@@ -110,6 +112,27 @@ def parse_tags(tags: list[str]) -> dict[str, str | int]:
     return parsed
 
 
+def parse_settings(given: list[str]) -> dict[str, int | float | str]:
+    """
+    :return: ``KEY=VALUE`` strings as the keywords of ``POPLIN.load`` (settings that replace the saved ones, e.g.
+        ``population_size=500``): a value is an integer, else a float, else text; a clear error for ``KEY`` alone
+    """
+    parsed: dict[str, int | float | str] = {}
+    for item in given:
+        key, separator, value = item.partition("=")
+        if not separator or not key or not value:
+            raise SystemExit(f"--set takes KEY=VALUE, e.g. --set population_size=500; got {item!r}")
+        for kind in (int, float):
+            try:
+                parsed[key] = kind(value)
+                break
+            except ValueError:
+                continue
+        else:
+            parsed[key] = value
+    return parsed
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", required=True, help="a half-cheetah task id (HalfCheetah-v5, sb3_poplin/PETSCheetah-v0)")
@@ -119,8 +142,17 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--record", type=Path, help="a JSON-lines file to append each result to")
     parser.add_argument("--tag", nargs="*", default=[], metavar="KEY=VALUE", help="fields added to the recorded lines")
+    parser.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="settings that replace the saved ones when the agents are loaded (e.g. population_size=500 num_elites=50: "
+        "the trained agent planning at another budget); recorded in each line's 'settings'",
+    )
     args = parser.parse_args()
     tags = parse_tags(args.tag)
+    settings = parse_settings(args.set)
     if tags and args.record is None:
         raise SystemExit("--tag adds fields to the lines of --record FILE: give --record too")
     provenance = {
@@ -132,12 +164,12 @@ def main() -> None:
     env = make_env(args.env)
     pitch = pitch_index(env)  # once, and before loading any model: it resets the env
     for path in args.models:
-        model = POPLIN.load(path, device="cpu")
+        model = POPLIN.load(path, device="cpu", **settings)
         for seed in args.seeds:
             result = posture_episode(model, env, seed, args.steps, pitch)
-            print(json.dumps({"model": path, "seed": seed, **result}), flush=True)
+            print(json.dumps({"model": path, "seed": seed, "settings": settings, **result}), flush=True)
             if args.record is not None:
-                line = {**tags, "model": path, "start_seed": seed, **result, **provenance}
+                line = {**tags, "model": path, "start_seed": seed, "settings": settings, **result, **provenance}
                 with open(args.record, "a") as file:
                     file.write(json.dumps(line) + "\n")
 

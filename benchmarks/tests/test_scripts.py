@@ -103,6 +103,43 @@ def test_cheetah_posture_counts_upside_down_pitches_over_full_turns():
         posture.parse_tags(["seed=one"])
 
 
+def test_cheetah_posture_plans_with_the_settings_it_is_given(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--set``: the agent is loaded with those settings (its planner's population), each line records them; a
+    value is typed as the constructor takes it, and a misspelt setting stops the check before any episode."""
+    posture = load_benchmark("cheetah_posture")
+    assert posture.parse_settings(["population_size=500", "cem_alpha=0.25", "optimizer=icem"]) == {
+        "population_size": 500,
+        "cem_alpha": 0.25,
+        "optimizer": "icem",
+    }
+    with pytest.raises(SystemExit, match=r"--set takes KEY=VALUE, e.g. --set population_size=500; got 'horizon='"):
+        posture.parse_settings(["horizon="])
+    agent = tiny("pets", "sb3_poplin/PETSCheetah-v0")
+    agent.save(tmp_path / "agent.zip")
+    populations = []
+    real_episode = posture.posture_episode
+
+    def episode(model, env, seed, steps, pitch):  # the population the loaded agent plans with
+        populations.append(model.mpc.planner.optimizer.population_size)
+        return real_episode(model, env, seed, steps, pitch)
+
+    monkeypatch.setattr(posture, "posture_episode", episode)
+    record = tmp_path / "posture.jsonl"
+    command = ["cheetah_posture.py", "--env", "sb3_poplin/PETSCheetah-v0", "--models", str(tmp_path / "agent.zip")]
+    command += ["--steps", "3", "--record", str(record), "--tag", "seed=0"]
+    monkeypatch.setattr("sys.argv", [*command, "--set", "population_size=7", "num_elites=2"])
+    posture.main()
+    monkeypatch.setattr("sys.argv", command)
+    posture.main()
+    assert populations == [7, agent.settings.population_size]
+    lines = [json.loads(line) for line in record.read_text().splitlines()]
+    assert [line["settings"] for line in lines] == [{"population_size": 7, "num_elites": 2}, {}]
+    monkeypatch.setattr("sys.argv", [*command, "--set", "num_elite=2"])
+    with pytest.raises(TypeError, match=r"'num_elite' \(did you mean 'num_elites'\?\)"):
+        posture.main()
+    assert len(record.read_text().splitlines()) == 2
+
+
 @pytest.mark.parametrize(
     "env_id, kwargs, index",
     [
