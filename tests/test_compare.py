@@ -58,6 +58,27 @@ def test_compare_through_local_ray(tmp_path: Path) -> None:
     assert all(run["returncode"] == 0 and run["run_dir"] for run in results["runs"])
 
 
+def test_local_ray_workers_run_at_the_callers_priority(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Ray's workers default to niceness 15: on a loaded machine the runs of --ray-address local starved (a 600 s timeout)
+    ray = pytest.importorskip("ray")
+    from sb3_poplin.experiments.compare.execution import RAY_NICENESS, start_local_ray
+
+    def worker_niceness() -> int:
+        return os.nice(0)
+
+    for given, expected in [(None, os.nice(0)), ("7", os.nice(0) + 7)]:
+        if given is None:
+            monkeypatch.delenv(RAY_NICENESS, raising=False)
+        else:
+            monkeypatch.setenv(RAY_NICENESS, given)
+        start_local_ray(ray, 1)
+        try:
+            assert ray.get(ray.remote(worker_niceness).remote()) == expected
+        finally:
+            ray.shutdown()
+        assert os.environ.get(RAY_NICENESS) == given  # the caller's environment as it was
+
+
 def test_compare_runs_poplin_variants_by_name(tmp_path: Path) -> None:
     algos = ["--algos", "pets", "poplin-a", "poplin", "sac", "rs", "--envs", "Pendulum-v1"]
     options = compare_module.parse_args(

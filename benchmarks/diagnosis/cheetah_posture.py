@@ -92,16 +92,30 @@ def posture_episode(model: POPLIN, env: gym.Env, seed: int, steps: int, pitch: i
 INTEGER_TAGS = ("seed",)  # recorded as numbers, as the lines' own seeds are (a commit such as 1234567 stays text)
 
 
+def split_pairs(items: list[str], option: str, example: str, empty_value: bool = True) -> list[tuple[str, str]]:
+    """
+    :param items: ``KEY=VALUE`` strings (a value may hold ``=``: only the first one splits)
+    :param option: the command-line option they came from, for the error
+    :param example: a correct ``KEY=VALUE`` for the error
+    :param empty_value: whether ``KEY=`` (an empty value) is allowed
+    :return: the (key, value) pairs; a clear error for any other spelling
+    """
+    pairs = []
+    for item in items:
+        key, separator, value = item.partition("=")
+        if not separator or not key or not (value or empty_value):
+            raise SystemExit(f"{option} takes KEY=VALUE, e.g. {option} {example}; got {item!r}")
+        pairs.append((key, value))
+    return pairs
+
+
 def parse_tags(tags: list[str]) -> dict[str, str | int]:
     """
     :return: ``KEY=VALUE`` strings as a mapping, the values of :data:`INTEGER_TAGS` as integers (``seed=1`` is
         recorded as ``1``, not ``"1"``); a clear error for any other spelling
     """
     parsed: dict[str, str | int] = {}
-    for tag in tags:
-        key, separator, value = tag.partition("=")
-        if not separator or not key:
-            raise SystemExit(f"--tag takes KEY=VALUE, e.g. --tag column=PETS; got {tag!r}")
+    for key, value in split_pairs(tags, "--tag", "column=PETS"):
         if key in INTEGER_TAGS:
             try:
                 parsed[key] = int(value)
@@ -118,10 +132,7 @@ def parse_settings(given: list[str]) -> dict[str, int | float | str]:
         ``population_size=500``): a value is an integer, else a float, else text; a clear error for ``KEY`` alone
     """
     parsed: dict[str, int | float | str] = {}
-    for item in given:
-        key, separator, value = item.partition("=")
-        if not separator or not key or not value:
-            raise SystemExit(f"--set takes KEY=VALUE, e.g. --set population_size=500; got {item!r}")
+    for key, value in split_pairs(given, "--set", "population_size=500", empty_value=False):
         for kind in (int, float):
             try:
                 parsed[key] = kind(value)

@@ -130,6 +130,27 @@ def execution_order(jobs: list[Job]) -> list[int]:
     return sorted(range(len(jobs)), key=lambda index: (seeds.index(jobs[index].seed), index))
 
 
+RAY_NICENESS = "RAY_worker_niceness"
+
+
+def start_local_ray(ray: Any, n_parallel: int) -> None:
+    """
+    Start a Ray instance on this machine whose workers run at the caller's priority, as ``--jobs`` runs do without
+    Ray: Ray's default lowers its workers' priority by 15, so that anything else on the machine (another run, a test
+    suite) starves the runs. A niceness given in ``RAY_worker_niceness`` is kept.
+
+    :param ray: the ``ray`` module
+    :param n_parallel: CPUs of the instance
+    """
+    given = os.environ.get(RAY_NICENESS)
+    os.environ[RAY_NICENESS] = given if given is not None else "0"  # the raylet started here reads its environment
+    try:
+        ray.init(num_cpus=n_parallel, include_dashboard=False, log_to_driver=False)
+    finally:
+        if given is None:
+            del os.environ[RAY_NICENESS]
+
+
 def run_ray(jobs: list[Job], address: str, n_parallel: int, force: bool) -> list[JobResult]:
     """
     Run the jobs as Ray tasks of one CPU each; the files of runs made on other machines are written to the
@@ -148,7 +169,7 @@ def run_ray(jobs: list[Job], address: str, n_parallel: int, force: bool) -> list
     except ImportError:
         raise SystemExit("--ray-address needs Ray: pip install 'sb3_poplin[ray]'") from None
     if address == "local":
-        ray.init(num_cpus=n_parallel, include_dashboard=False, log_to_driver=False)
+        start_local_ray(ray, n_parallel)
     else:
         ray.init(address=address, log_to_driver=False)
     try:
