@@ -226,6 +226,93 @@ def test_the_defaults_are_the_ab_arms_they_were_chosen_from(config: str, arm: st
     }
 
 
+# ------------------------------------------------------------------------------------------------ beside_paper.py
+def test_beside_paper_welch_test_is_scipys_from_the_same_statistics() -> None:
+    """Welch's test of our seeds against a published mean ± std: scipy's ``ttest_ind_from_stats`` on the same numbers
+    (our sample std, the paper's std as a sample one), and the Welch-Satterthwaite degrees of freedom by hand."""
+    from scipy import stats
+
+    beside = load_benchmark("beside_paper")
+    ours = [3318.5, 2778.9, 3700.5, 2900.0]
+    result = beside.welch_from_stats(ours, 4205.0, 789.0, 4)
+    expected = stats.ttest_ind_from_stats(np.mean(ours), np.std(ours, ddof=1), 4, 4205.0, 789.0, 4, equal_var=False)
+    assert result["t"] == pytest.approx(expected.statistic, rel=1e-12)
+    assert result["p"] == pytest.approx(expected.pvalue, rel=1e-9)
+    a, b = np.var(ours, ddof=1) / 4, 789.0**2 / 4
+    assert result["df"] == pytest.approx((a + b) ** 2 / (a**2 / 3 + b**2 / 3), rel=1e-12)
+    with pytest.raises(ValueError, match="at least 2 values a side; got 1 here"):
+        beside.welch_from_stats([1.0], 0.0, 1.0, 4)
+
+
+def test_beside_paper_permutation_test_is_exact() -> None:
+    """The exact permutation test: scipy's exhaustive one on equal groups (where its two-sided p and the share of
+    splits at least as extreme in magnitude agree), a small case by hand, and the floor of 4 seeds a side."""
+    from scipy import stats
+
+    beside = load_benchmark("beside_paper")
+    first, second = [16705.0, 14287.0, 3100.0, 9000.0], [3319.0, 2779.0, 3700.0, 4100.0]
+
+    def difference(x, y, axis):
+        return np.mean(x, axis=axis) - np.mean(y, axis=axis)
+
+    exhaustive = stats.permutation_test((first, second), difference, permutation_type="independent", n_resamples=np.inf)
+    assert beside.permutation_p(first, second) == pytest.approx(exhaustive.pvalue, rel=1e-12)
+    # [3] against [1, 2]: the splits {3}|{1,2} (1.5), {1}|{2,3} (-1.5), {2}|{1,3} (0): 2 of 3 as extreme
+    assert beside.permutation_p([3.0], [1.0, 2.0]) == pytest.approx(2 / 3)
+    # every one of 4 above every one of 4: only the observed split and its mirror are as extreme
+    assert beside.permutation_p([10.0, 11.0, 12.0, 13.0], [1.0, 2.0, 3.0, 4.0]) == pytest.approx(2 / 70)
+    with pytest.raises(ValueError, match="values on both sides"):
+        beside.permutation_p([], [1.0])
+
+
+def test_beside_paper_writes_its_section_once_with_the_numbers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--write``: the section replaces an earlier one in results.md (text after it stays), its numbers go into
+    results.json; a paper column not run here says so; posture lines at other settings are left out, a re-checked
+    agent counts once (its latest line); a misspelt --paper is a clear error."""
+    beside = load_benchmark("beside_paper")
+    protocol = {
+        "step": 50000,
+        "window": 3000,
+        "labels": {
+            "PETS": {"seeds": [0, 1], "values": [3000.0, 4000.0]},
+            "POPLIN-P": {"seeds": [0, 1], "values": [15000.0, 17000.0]},
+        },
+    }
+    report = tmp_path / "report"
+    report.mkdir()
+    (report / "results.json").write_text(json.dumps({"tasks": [{"env": "T-v0", "paper_protocol": protocol}]}))
+    (report / "results.md").write_text("# Report\n\n## Table\n\nrows\n")
+    posture = tmp_path / "posture.jsonl"
+    lines = [
+        {"column": "PETS", "seed": 0, "run": "a", "return": 2000.0, "upside_down": 0.5, "settings": {}},
+        {"column": "PETS", "seed": 0, "run": "a", "return": 2100.0, "upside_down": 0.4, "turns": 3.0, "settings": {}},
+        {"column": "PETS", "seed": 0, "run": "a", "return": 9999.0, "upside_down": 0.0, "settings": {"population_size": 500}},
+        {"column": "POPLIN-P", "seed": 1, "run": "b", "return": 18000.0, "upside_down": 0.42, "turns": 133.0},
+    ]
+    posture.write_text("\n".join(json.dumps(line) for line in lines) + "\n")
+    command = ["beside_paper.py", "--report", str(report), "--paper", "POPLIN-P=12228,5653", "PETS=4205,789"]
+    command += ["SAC=1746,839", "--paper-seeds", "4", "--ratio", "POPLIN-P", "PETS", "--posture", str(posture)]
+    monkeypatch.setattr("sys.argv", [*command, "--write", "--note", "first"])
+    beside.main()
+    monkeypatch.setattr("sys.argv", [*command, "--write", "--note", "second"])
+    beside.main()
+    text = (report / "results.md").read_text()
+    assert text.count("## Beside the paper") == 1 and "second" in text and "first" not in text
+    assert text.startswith("# Report\n\n## Table\n\nrows\n\n## Beside the paper")
+    assert "| PETS | 4205 ± 789 | 3500 ± 500 (2 seeds) | s0: 3000, s1: 4000 | -705 (-17%) |" in text
+    assert "| SAC | 1746 ± 839 | not run here | — | — | — |" in text
+    assert "POPLIN-P / PETS: 4.57x here (2 and 2 seeds), 2.91x in the paper" in text
+    assert "in 4 of 4 pairs" in text and "two-sided p = 0.333" in text  # 2 of the 6 splits of 4 values
+    assert "| PETS | 0 | — | 2100 | 40.0% | 3.0 |" in text and "9999" not in text and "2000 |" not in text
+    numbers = json.loads((report / "results.json").read_text())["beside_paper"]
+    assert numbers["columns"]["POPLIN-P"]["mean"] == 16000.0 and numbers["ratio"]["pairs_above"] == 4
+    assert numbers["columns"]["PETS"]["welch"]["t"] == pytest.approx(-705 / np.sqrt(500_000 / 2 + 789.0**2 / 4))
+    assert [line["return"] for line in numbers["posture"]] == [2100.0, 18000.0]
+    monkeypatch.setattr("sys.argv", ["beside_paper.py", "--report", str(report), "--paper", "PETS:4205", "--paper-seeds", "4"])
+    with pytest.raises(SystemExit, match=r"--paper takes LABEL=MEAN,STD, e.g. --paper PETS=4205,789; got 'PETS:4205'"):
+        beside.main()
+
+
 # ------------------------------------------------------------------------------------------------ results_file.py
 def test_a_row_goes_below_the_table_not_below_the_text_after_it(tmp_path: Path) -> None:
     results = load_benchmark("results_file")

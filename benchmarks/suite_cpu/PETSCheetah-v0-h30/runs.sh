@@ -139,18 +139,13 @@ case "${1:-}" in
         # finished yet are in it as far as they got (their small files, synced)
         (cd "$REPO" && "$REPO/.venv/bin/python" benchmarks/compare.py "${ARGS[@]}" --report-only --include-unfinished \
             --protocol-steps 15000 25000 35000 50000 --log-folder "$HERE/$FOLDER/zoo" --output "$HERE/$2") || true
-        [ -e "$HERE/$2/results.md" ] && cat >> "$HERE/$2/results.md" <<'PAPER'
-
-## Beside the paper
-
-Wang & Ba 2019, Table 1 (PETS's Cheetah, 50 000 steps, horizon 30, 4 seeds; the same measure: the mean return of
-the training episodes that ended in the last 3000 steps). The paper's planner had a population of 500 and a
-5 × 4×200 model; these runs have 200 (20 elites, 5 iterations) and the CPU preset's 5 × 3×128 (issue 45).
-
-| | POPLIN-P | POPLIN-A | PETS | SAC | TD3 |
-|---|---|---|---|---|---|
-| the paper, 50k steps | 12228 ± 5653 | 4651 ± 1089 | 4205 ± 789 | 1746 ± 839 | 219 ± 593 |
-PAPER
+        # beside the paper's Table 1: each column against the paper's mean ± std (Welch's test), POPLIN-P / PETS with
+        # an exact permutation test, and the posture check of every final agent (posture.jsonl)
+        [ -e "$HERE/$2/results.json" ] && (cd "$REPO" && "$REPO/.venv/bin/python" benchmarks/diagnosis/beside_paper.py \
+            --report "$HERE/$2" --paper POPLIN-P=12228,5653 POPLIN-A=4651,1089 PETS=4205,789 SAC=1746,839 TD3=219,593 \
+            --paper-seeds 4 --ratio POPLIN-P PETS --posture "$HERE/posture.jsonl" --write --note "Wang & Ba 2019, \
+Table 1 (PETS's Cheetah, 50 000 steps, horizon 30, 4 seeds; the same measure). The paper's planner had a population \
+of 500 and a 5 × 4×200 model; these runs have 200 (20 elites, 5 iterations) and the CPU preset's 5 × 3×128 (issue 45).")
         ;;
     posture)  # with the repository's code (the agents were trained by PIN), one 1000-step MPC episode from seed 1000
         for marker in "$ROOT"/logs/*/*/*/compare_complete.json; do
