@@ -315,6 +315,32 @@ def test_report_only_includes_unfinished_runs_as_far_as_they_got(tmp_path: Path,
         compare_module.parse_args([*common, "--include-unfinished"])
 
 
+def test_the_report_counts_each_runs_time_without_its_interruptions(tmp_path: Path) -> None:
+    """The run time of a resumed run: its monitor keeps its start, so the time it was stopped is inside one episode,
+    which counts at the run's median; an uninterrupted run's time is its monitor's last time."""
+    common = ["--algos", "pets", "--envs", "Pendulum-v1", "--seeds", "0", "1", "-n", "5000", "--n-evals", "5"]
+    jobs = compare_module.plan_jobs(compare_module.parse_args([*common, "--log-folder", str(tmp_path)]))
+    end_times = {0: [100.0, 210.0, 300.0, 7500.0, 7600.0], 1: [90.0, 200.0, 310.0, 420.0, 530.0]}
+    results = []
+    for job in jobs:
+        run_dir = tmp_path / job.zoo_algo / f"Pendulum-v1_{job.seed + 1}_{job.algo}"
+        write_fake_run(job, run_dir, [0.0] * 5, [-100.0] * 5, 1000)
+        lines = ["#" + json.dumps({"t_start": 0, "env_id": job.env}), "r,l,t"]
+        lines += [f"-100.0,1000,{t}" for t in end_times[job.seed]]
+        (run_dir / "0.monitor.csv").write_text("\n".join(lines) + "\n")
+        results.append(compare_module.JobResult(job, 0, str(run_dir.relative_to(tmp_path)), reused=True))
+    episodes = compare_module.load_training(results[0])
+    # durations 100, 110, 90, 7200 (stopped inside), 100: median 100; 7200 > 3 x 100 counts as 100
+    assert episodes.run_time() == (pytest.approx(500.0), 1)
+    assert episodes.run_time(gap=100.0) == (pytest.approx(7600.0), 0)
+    table = compare_module.write_report(results, ["Pendulum-v1"], "cpu", tmp_path / "report").read_text()
+    assert "| Pendulum-v1 | PETS | 0 | 5 | 0.14 | 1 | 2.11 |" in table
+    assert "| Pendulum-v1 | PETS | 1 | 5 | 0.15 | 0 | 0.15 |" in table
+    assert "All 2 runs: 0.29 hours of run time." in table
+    runs = json.loads((tmp_path / "report" / "results.json").read_text())["runs"]
+    assert [(run["run_time_s"], run["interrupted_episodes"]) for run in runs] == [(500.0, 1), (530.0, 0)]
+
+
 def test_the_interrupted_run_to_continue_is_the_furthest_one(tmp_path: Path) -> None:
     """The newest checkpoint wins; without checkpoints (a synced copy) the most training episodes, then the newest."""
     import os

@@ -18,6 +18,8 @@ import yaml
 from sb3_poplin.experiments.compare.jobs import PAPER_WINDOW, JobResult, env_name
 from sb3_poplin.variants import POLICY_VARIANTS
 
+RUN_TIME_GAP = 3.0  # an episode longer than this many times its run's median held an interruption (run time)
+
 
 @dataclass
 class Curve:
@@ -76,6 +78,8 @@ class TrainingEpisodes:
     :param end_steps: the environment step at which each episode ended
     :param returns: each episode's return
     :param n_timesteps: the steps the run trained (``None``: unknown)
+    :param end_times: the wall time at which each episode ended, in seconds since the run's monitor started (its
+        ``t`` column; a resumed run's monitor keeps its start, so the time it was stopped is inside one episode)
     """
 
     label: str
@@ -83,6 +87,22 @@ class TrainingEpisodes:
     end_steps: np.ndarray
     returns: np.ndarray
     n_timesteps: int | None = None
+    end_times: np.ndarray | None = None
+
+    def run_time(self, gap: float = RUN_TIME_GAP) -> tuple[float, int]:
+        """
+        The time the run computed, which for an interrupted run is less than the span of its monitor.
+
+        :param gap: an episode that took more than ``gap`` times the run's median episode held an interruption
+        :return: the sum of the episodes' durations (the evaluations and model fits between them included), each
+            interrupted episode counted at the median; and the number of such episodes
+        """
+        if self.end_times is None or len(self.end_times) == 0:
+            return float("nan"), 0
+        durations = np.diff(np.concatenate([[0.0], np.sort(np.asarray(self.end_times, dtype=float))]))
+        median = float(np.median(durations))
+        interrupted = durations > gap * median
+        return float(durations[~interrupted].sum() + median * interrupted.sum()), int(interrupted.sum())
 
     def window_mean(self, step: int, window: int) -> float:
         """
@@ -112,11 +132,11 @@ def load_training(result: JobResult) -> TrainingEpisodes | None:
     if not rows:
         return None
     rows.sort(key=lambda row: row[2])
-    returns, lengths, _ = (np.asarray(column, dtype=float) for column in zip(*rows, strict=True))
+    returns, lengths, times = (np.asarray(column, dtype=float) for column in zip(*rows, strict=True))
     end_steps = np.cumsum(lengths).astype(int)
     # an unfinished run has trained as far as its last episode's end, not its budget
     trained = int(end_steps[-1]) if result.unfinished else job.n_timesteps
-    return TrainingEpisodes(job.column.upper(), job.seed, end_steps, returns, trained)
+    return TrainingEpisodes(job.column.upper(), job.seed, end_steps, returns, trained, times)
 
 
 def first_step_reaching(steps: np.ndarray, values: np.ndarray, target: float) -> int | None:
@@ -613,6 +633,34 @@ def write_table(summaries: list[TaskSummary], budget: str, path: Path) -> None:
     path.write_text("\n".join(lines + protocol_lines(summaries)) + "\n")
 
 
+def run_time_lines(timed: list[tuple[JobResult, TrainingEpisodes]]) -> list[str]:
+    """:return: the Markdown of the run-time table: each run's :meth:`TrainingEpisodes.run_time`, and their sum"""
+    lines = [
+        "",
+        "## Run time",
+        "",
+        "Each run's computing time from its monitor (the wall time at which each training episode ended): the sum of",
+        f"its episodes' durations, evaluations and model fits included. An episode that took more than {RUN_TIME_GAP:g} times",
+        "its run's median held an interruption (the time the run was stopped) and counts at the median. A run",
+        "trains on one core; its span is the monitor's last time, interruptions included. Work an interruption lost",
+        "(done after the run's last checkpoint, then redone) is not in either.",
+        "",
+        "| task | column | seed | episodes | run time (h) | interrupted episodes | span (h) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    total = 0.0
+    for result, episodes in timed:
+        seconds, interrupted = episodes.run_time()
+        total += seconds
+        span = float(np.max(episodes.end_times)) if episodes.end_times is not None else float("nan")
+        lines.append(
+            f"| {result.job.env} | {result.job.column.upper()} | {result.job.seed} | {len(episodes.returns)} | "
+            f"{seconds / 3600:.2f} | {interrupted} | {span / 3600:.2f} |"
+        )
+    lines += ["", f"All {len(timed)} runs: {total / 3600:.2f} hours of run time."]
+    return lines
+
+
 def _seeds(count: int) -> str:
     return f"{count} seed{'' if count == 1 else 's'}"
 
@@ -770,9 +818,15 @@ def write_report(
             steps = "—" if episodes is None else str(episodes.n_timesteps)
             lines.append(f"| {result.job.env} | {result.job.column.upper()} | {result.job.seed} | {steps} |")
         table.write_text(table.read_text() + "\n".join(lines) + "\n")
+    timed = [(result, episodes) for result in results if result.run_dir is not None and (episodes := load_training(result))]
+    times = {id(result): episodes.run_time() for result, episodes in timed}
+    if timed:
+        table.write_text(table.read_text() + "\n".join(run_time_lines(timed)) + "\n")
     runs = []
     for result in results:
         run = {**asdict(result.job), "run_dir": result.run_dir, "returncode": result.returncode}
+        if id(result) in times:
+            run |= {"run_time_s": times[id(result)][0], "interrupted_episodes": times[id(result)][1]}
         runs.append({**run, "unfinished": True} if result.unfinished else run)
     suite = "paper" if paper_names else "all"
     tasks = [summary.to_json() for summary in summaries]
